@@ -1,0 +1,52 @@
+//! Run-wide settings shared by every stage: verbosity and progress bars.
+//!
+//! A [`Context`] is built once from the global CLI flags. Stages ask it for progress bars,
+//! which draw only on an interactive terminal and never with `--quiet`.
+
+use std::io::IsTerminal;
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Global settings of one invocation.
+#[derive(Debug, Clone, Default)]
+pub struct Context {
+    /// Suppress progress bars and informational messages.
+    pub quiet: bool,
+    /// Extra diagnostic output (0 = normal).
+    pub verbose: u8,
+}
+
+impl Context {
+    /// A context that prints nothing (tests, nested pipeline runs).
+    pub fn quiet() -> Self {
+        Context { quiet: true, verbose: 0 }
+    }
+
+    /// A progress bar over `len` items labelled `what`; hidden when quiet or stderr is not
+    /// a terminal.
+    pub fn progress(&self, len: u64, what: &str) -> ProgressBar {
+        if self.quiet || !std::io::stderr().is_terminal() {
+            return ProgressBar::hidden();
+        }
+        let bar = ProgressBar::new(len);
+        bar.set_style(
+            ProgressStyle::with_template("{msg:>14} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        bar.set_message(what.to_string());
+        bar
+    }
+
+    /// Print an informational line to stderr unless quiet.
+    pub fn info(&self, msg: impl std::fmt::Display) {
+        if !self.quiet {
+            eprintln!("{msg}");
+        }
+    }
+
+    /// Print a warning to stderr (always, warnings are never silenced).
+    pub fn warn(&self, msg: impl std::fmt::Display) {
+        eprintln!("warning: {msg}");
+    }
+}

@@ -1,0 +1,5 @@
+//! Datasets: the synthetic extreme-view benchmark rendered from animated glTF models, and
+//! the DyCheck iPhone loader.
+
+pub mod dycheck;
+pub mod synth;

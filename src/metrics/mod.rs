@@ -1,0 +1,4 @@
+//! Image and tracking metrics (being written).
+
+pub mod bench;
+pub mod lpips;

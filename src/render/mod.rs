@@ -1,0 +1,3 @@
+//! The differentiable Gaussian rasterizer (being written).
+
+pub mod bench;

@@ -1,0 +1,15 @@
+//! The USplat4D stages, each a pure function of its input tables and parameters.
+
+pub mod bench_graph;
+pub mod edges;
+pub mod evaluate;
+pub mod keynodes;
+pub mod render;
+pub mod segment;
+pub mod uncertainty;
+
+/// A stage ran but a check it was asked to make failed (exit code 1, e.g.
+/// `evaluate --fail-below`).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct CheckFailed(pub String);

@@ -1,0 +1,155 @@
+//! The `cameras` table: one row per (camera, frame) image of a scene.
+//!
+//! Convention (DESIGN.md): OpenCV axes, `w2c` 4x4 row-major, pixel centres at +0.5,
+//! intrinsics in pixels. Paths are relative to the scene directory. Rows are written in the
+//! order given; readers validate finiteness, positive sizes and unique (camera, frame).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use arrow::array::{Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, StringArray, UInt32Array};
+use arrow::datatypes::{DataType, Float32Type, Float64Type, Schema, SchemaRef, UInt32Type};
+
+use super::io::{Columns, Table, TableReader, batch, field, fixed_list, nullable, write_table};
+use super::{Error, Provenance, Result, validate};
+use crate::scene::{Camera, Split};
+
+/// Marker type of the `cameras` table.
+pub struct CamerasTable;
+
+impl Table for CamerasTable {
+    const NAME: &'static str = "cameras";
+    const VERSION: u32 = 1;
+    fn schema() -> SchemaRef {
+        Arc::new(Schema::new(vec![
+            field("frame", DataType::UInt32),
+            field("camera", DataType::Utf8),
+            field("split", DataType::Utf8),
+            field("fx", DataType::Float64),
+            field("fy", DataType::Float64),
+            field("cx", DataType::Float64),
+            field("cy", DataType::Float64),
+            field("width", DataType::UInt32),
+            field("height", DataType::UInt32),
+            field("w2c", fixed_list(DataType::Float64, 16)),
+            field("image_path", DataType::Utf8),
+            nullable("depth_path", DataType::Utf8),
+            nullable("mask_path", DataType::Utf8),
+            nullable("angle_offset_deg", DataType::Float32),
+            nullable("distortion", fixed_list(DataType::Float64, 5)),
+        ]))
+    }
+}
+
+/// Write `cameras` to `path` atomically (one row group).
+pub fn write(path: &Path, cameras: &[Camera], provenance: &Provenance) -> Result<()> {
+    let w2c: Vec<f64> = cameras.iter().flat_map(|c| c.w2c).collect();
+    let item = Arc::new(arrow::datatypes::Field::new("item", DataType::Float64, false));
+    let w2c = FixedSizeListArray::new(item.clone(), 16, Arc::new(Float64Array::from(w2c)), None);
+    let dist_valid: Vec<bool> = cameras.iter().map(|c| c.distortion.is_some()).collect();
+    let dist: Vec<f64> = cameras.iter().flat_map(|c| c.distortion.unwrap_or([0.0; 5])).collect();
+    let dist = FixedSizeListArray::new(
+        item,
+        5,
+        Arc::new(Float64Array::from(dist)),
+        Some(dist_valid.into()),
+    );
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(UInt32Array::from_iter_values(cameras.iter().map(|c| c.frame))),
+        Arc::new(StringArray::from_iter_values(cameras.iter().map(|c| c.camera.as_str()))),
+        Arc::new(StringArray::from_iter_values(cameras.iter().map(|c| c.split.as_str()))),
+        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.fx))),
+        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.fy))),
+        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.cx))),
+        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.cy))),
+        Arc::new(UInt32Array::from_iter_values(cameras.iter().map(|c| c.width))),
+        Arc::new(UInt32Array::from_iter_values(cameras.iter().map(|c| c.height))),
+        Arc::new(w2c),
+        Arc::new(StringArray::from_iter_values(cameras.iter().map(|c| c.image_path.as_str()))),
+        Arc::new(StringArray::from_iter(cameras.iter().map(|c| c.depth_path.as_deref()))),
+        Arc::new(StringArray::from_iter(cameras.iter().map(|c| c.mask_path.as_deref()))),
+        Arc::new(Float32Array::from_iter(cameras.iter().map(|c| c.angle_offset_deg))),
+        Arc::new(dist),
+    ];
+    write_table::<CamerasTable>(path, provenance, [batch::<CamerasTable>(cols)])
+}
+
+/// Read and validate the cameras of `path`.
+pub fn read(path: &Path) -> Result<Vec<Camera>> {
+    let reader = TableReader::open::<CamerasTable>(path)?;
+    let b = reader.read_all()?;
+    let c = Columns::new(path, &b);
+    let frame = c.values::<UInt32Type>("frame")?;
+    let camera = c.strings("camera")?;
+    let split = c.strings("split")?;
+    let fx = c.values::<Float64Type>("fx")?;
+    let fy = c.values::<Float64Type>("fy")?;
+    let cx = c.values::<Float64Type>("cx")?;
+    let cy = c.values::<Float64Type>("cy")?;
+    let width = c.values::<UInt32Type>("width")?;
+    let height = c.values::<UInt32Type>("height")?;
+    let w2c = c.fixed_f64("w2c", 16)?;
+    let image = c.strings("image_path")?;
+    let depth = c.opt_strings("depth_path")?;
+    let mask = c.opt_strings("mask_path")?;
+    let angle = c.opt_values::<Float32Type>("angle_offset_deg")?;
+    let dist_arr = c.get::<FixedSizeListArray>("distortion")?;
+    for (name, v) in [("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy), ("w2c", w2c)] {
+        validate::finite(path, name, 0, v)?;
+    }
+    let value_err = |column: &str, row: usize, msg: String| Error::Value {
+        path: path.to_path_buf(),
+        column: column.into(),
+        row: row as u64,
+        msg,
+    };
+    let mut seen = std::collections::HashMap::new();
+    let mut out = Vec::with_capacity(b.num_rows());
+    for i in 0..b.num_rows() {
+        let split = Split::parse(&split[i])
+            .ok_or_else(|| value_err("split", i, format!("unknown split '{}' (train or eval)", split[i])))?;
+        if width[i] == 0 || height[i] == 0 {
+            return Err(value_err("width", i, format!("image size {}x{} is empty", width[i], height[i])));
+        }
+        if fx[i] <= 0.0 || fy[i] <= 0.0 {
+            return Err(value_err("fx", i, format!("focal lengths must be positive, got {} {}", fx[i], fy[i])));
+        }
+        if let Some(first) = seen.insert((camera[i].clone(), frame[i]), i) {
+            return Err(value_err(
+                "camera",
+                i,
+                format!("camera '{}' frame {} repeats row {first}", camera[i], frame[i]),
+            ));
+        }
+        let distortion = if dist_arr.is_valid(i) {
+            let v = dist_arr.value(i);
+            let v = v.as_any().downcast_ref::<Float64Array>().map(|a| a.values().to_vec()).unwrap_or_default();
+            validate::finite(path, "distortion", i as u64, &v)?;
+            let mut d = [0.0; 5];
+            d.copy_from_slice(&v[..5]);
+            Some(d)
+        } else {
+            None
+        };
+        let mut m = [0.0; 16];
+        m.copy_from_slice(&w2c[i * 16..i * 16 + 16]);
+        out.push(Camera {
+            frame: frame[i],
+            camera: camera[i].clone(),
+            split,
+            fx: fx[i],
+            fy: fy[i],
+            cx: cx[i],
+            cy: cy[i],
+            width: width[i],
+            height: height[i],
+            w2c: m,
+            image_path: image[i].clone(),
+            depth_path: depth[i].clone(),
+            mask_path: mask[i].clone(),
+            angle_offset_deg: angle[i],
+            distortion,
+        });
+    }
+    Ok(out)
+}

@@ -1,0 +1,1 @@
+//! The `key_nodes` table (being written).

@@ -1,0 +1,1 @@
+//! The `tracks_2d` table (being written).

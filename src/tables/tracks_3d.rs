@@ -1,0 +1,1 @@
+//! The `tracks_3d` table (being written).

@@ -1,0 +1,145 @@
+//! The `trajectories` table: each Gaussian's position and rotation at every frame.
+//!
+//! One row group per frame (row group t holds frame t), rows within a frame in the model's
+//! canonical Gaussian order, so a stage can stream the model frame by frame. Quaternions
+//! are `w, x, y, z`, normalised.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use arrow::array::{ArrayRef, Float32Array, RecordBatch, UInt32Array};
+use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
+
+use super::io::{Columns, Table, TableReader, TableWriter, batch, field};
+use super::{Error, Provenance, Result, validate};
+use crate::model::FrameState;
+
+/// Marker type of the `trajectories` table.
+pub struct TrajectoriesTable;
+
+impl Table for TrajectoriesTable {
+    const NAME: &'static str = "trajectories";
+    const VERSION: u32 = 1;
+    fn schema() -> SchemaRef {
+        Arc::new(Schema::new(vec![
+            field("frame", DataType::UInt32),
+            field("gaussian_id", DataType::UInt32),
+            field("x", DataType::Float32),
+            field("y", DataType::Float32),
+            field("z", DataType::Float32),
+            field("qw", DataType::Float32),
+            field("qx", DataType::Float32),
+            field("qy", DataType::Float32),
+            field("qz", DataType::Float32),
+        ]))
+    }
+}
+
+/// The row group of one frame; `ids` is the canonical Gaussian order.
+pub fn frame_batch(ids: &[u32], s: &FrameState) -> RecordBatch {
+    let n = ids.len();
+    let p = |k: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(s.position.iter().map(|v| v[k]))) };
+    let q = |k: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(s.rotation.iter().map(|v| v[k]))) };
+    batch::<TrajectoriesTable>(vec![
+        Arc::new(UInt32Array::from(vec![s.frame; n])),
+        Arc::new(UInt32Array::from(ids.to_vec())),
+        p(0),
+        p(1),
+        p(2),
+        q(0),
+        q(1),
+        q(2),
+        q(3),
+    ])
+}
+
+/// Streams frames into a `trajectories` file, one row group each, atomically on finish.
+pub struct TrajectoryWriter {
+    inner: TableWriter,
+    ids: Vec<u32>,
+    next: u32,
+}
+
+impl TrajectoryWriter {
+    /// Start writing to `path` for Gaussians `ids` (canonical order).
+    pub fn create(path: &Path, ids: &[u32], provenance: &Provenance) -> Result<Self> {
+        Ok(TrajectoryWriter { inner: TableWriter::create::<TrajectoriesTable>(path, provenance)?, ids: ids.to_vec(), next: 0 })
+    }
+
+    /// Append the next frame (frames must come as 0, 1, 2, ...).
+    pub fn write(&mut self, s: &FrameState) -> Result<()> {
+        assert_eq!(s.frame, self.next, "frames are written in order");
+        assert_eq!(s.position.len(), self.ids.len(), "one position per Gaussian");
+        assert_eq!(s.rotation.len(), self.ids.len(), "one rotation per Gaussian");
+        self.inner.write_group(&frame_batch(&self.ids, s))?;
+        self.next += 1;
+        Ok(())
+    }
+
+    /// Close and rename into place.
+    pub fn finish(self) -> Result<()> {
+        self.inner.finish()
+    }
+}
+
+/// Reads a `trajectories` file frame by frame, validating each frame as it is read.
+pub struct TrajectoryReader {
+    inner: TableReader,
+    ids: Vec<u32>,
+}
+
+impl TrajectoryReader {
+    /// Open `path`, checking that every frame has one row per Gaussian of `ids`.
+    pub fn open(path: &Path, ids: &[u32]) -> Result<Self> {
+        let inner = TableReader::open::<TrajectoriesTable>(path)?;
+        for g in 0..inner.num_row_groups() {
+            if inner.row_group_rows(g) != ids.len() as u64 {
+                return Err(Error::Frame {
+                    path: path.into(),
+                    frame: g as u64,
+                    msg: format!("{} rows, expected one per Gaussian ({})", inner.row_group_rows(g), ids.len()),
+                });
+            }
+        }
+        Ok(TrajectoryReader { inner, ids: ids.to_vec() })
+    }
+
+    /// Number of frames T.
+    pub fn num_frames(&self) -> usize {
+        self.inner.num_row_groups()
+    }
+
+    /// Read and validate frame `t`.
+    pub fn frame(&self, t: usize) -> Result<FrameState> {
+        let path = self.inner.path();
+        let b = self.inner.read_group(t)?;
+        let row0 = self.inner.row_group_offset(t);
+        let c = Columns::new(path, &b);
+        validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
+        let id = c.values::<UInt32Type>("gaussian_id")?;
+        if let Some(i) = (0..id.len()).find(|&i| id[i] != self.ids[i]) {
+            return Err(Error::Value {
+                path: path.into(),
+                column: "gaussian_id".into(),
+                row: row0 + i as u64,
+                msg: format!(
+                    "id {} where the gaussians table has {} (rows of each frame follow the gaussians order)",
+                    id[i], self.ids[i]
+                ),
+            });
+        }
+        let mut f = Vec::with_capacity(7);
+        for name in ["x", "y", "z", "qw", "qx", "qy", "qz"] {
+            let v = c.values::<Float32Type>(name)?;
+            validate::finite(path, name, row0, v)?;
+            f.push(v);
+        }
+        validate::unit_quaternions(path, row0, f[3], f[4], f[5], f[6])?;
+        let n = id.len();
+        Ok(FrameState {
+            frame: t as u32,
+            position: (0..n).map(|i| [f[0][i], f[1][i], f[2][i]]).collect(),
+            rotation: (0..n).map(|i| [f[3][i], f[4][i], f[5][i], f[6][i]]).collect(),
+        })
+    }
+}

@@ -1,0 +1,1 @@
+//! The `uncertainty` table (being written).

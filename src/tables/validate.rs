@@ -1,0 +1,88 @@
+//! Invariant checks shared by the table readers: finite values, normalised quaternions,
+//! unique ids and frames without gaps. Each returns the first violation with its file,
+//! column and row.
+
+use std::path::Path;
+
+use super::{Error, Result};
+
+/// Tolerance on `|q| - 1` for stored quaternions.
+pub const QUAT_NORM_TOL: f32 = 1e-3;
+
+/// Every value of `column` is finite; `row0` is the file row of `values[0]`.
+pub fn finite<F: Copy + Into<f64>>(path: &Path, column: &str, row0: u64, values: &[F]) -> Result<()> {
+    match values.iter().position(|v| !(*v).into().is_finite()) {
+        Some(i) => Err(Error::Value {
+            path: path.to_path_buf(),
+            column: column.to_string(),
+            row: row0 + i as u64,
+            msg: format!("non-finite value {}", values[i].into()),
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Every value lies in `[lo, hi]`.
+pub fn in_range(path: &Path, column: &str, row0: u64, values: &[f32], lo: f32, hi: f32) -> Result<()> {
+    match values.iter().position(|v| !(*v >= lo && *v <= hi)) {
+        Some(i) => Err(Error::Value {
+            path: path.to_path_buf(),
+            column: column.to_string(),
+            row: row0 + i as u64,
+            msg: format!("value {} outside [{lo}, {hi}]", values[i]),
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Quaternions `(w, x, y, z)` given as four columns are normalised within [`QUAT_NORM_TOL`].
+pub fn unit_quaternions(path: &Path, row0: u64, w: &[f32], x: &[f32], y: &[f32], z: &[f32]) -> Result<()> {
+    for i in 0..w.len() {
+        let n = (w[i] * w[i] + x[i] * x[i] + y[i] * y[i] + z[i] * z[i]).sqrt();
+        if !((n - 1.0).abs() <= QUAT_NORM_TOL) {
+            return Err(Error::Value {
+                path: path.to_path_buf(),
+                column: "qw,qx,qy,qz".into(),
+                row: row0 + i as u64,
+                msg: format!(
+                    "quaternion ({}, {}, {}, {}) has norm {n}, expected 1",
+                    w[i], x[i], y[i], z[i]
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Ids are unique; reports the row of the first repeat.
+pub fn unique_ids(path: &Path, column: &str, row0: u64, ids: &[u32]) -> Result<()> {
+    let mut seen = std::collections::HashMap::with_capacity(ids.len());
+    for (i, id) in ids.iter().enumerate() {
+        if let Some(first) = seen.insert(*id, i) {
+            return Err(Error::Value {
+                path: path.to_path_buf(),
+                column: column.to_string(),
+                row: row0 + i as u64,
+                msg: format!("duplicate id {id} (first at row {})", row0 + first as u64),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The frame column of row group `group` holds the single value `group` (per-frame tables
+/// store frame t in row group t, so frames run 0..T-1 without gaps).
+pub fn frame_column(path: &Path, group: usize, row0: u64, frames: &[u32]) -> Result<()> {
+    match frames.iter().position(|f| *f as usize != group) {
+        Some(i) => Err(Error::Frame {
+            path: path.to_path_buf(),
+            frame: group as u64,
+            msg: format!(
+                "row {} has frame {}, expected {group} (frames must be 0..T-1 without gaps, one row group each)",
+                row0 + i as u64,
+                frames[i]
+            ),
+        }),
+        None => Ok(()),
+    }
+}
