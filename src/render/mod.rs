@@ -1,3 +1,212 @@
-//! The differentiable Gaussian rasterizer (being written).
+//! The Gaussian rasterizer: one [`Renderer`] interface, implemented on the CPU (the
+//! reference, rayon over tiles) and later on the GPU (wgpu), which must match it.
+//!
+//! Inputs are one frame's Gaussians ([`SplatInputs`], canonical order, `[N]` arrays) and a
+//! pinhole [`RenderCamera`]. Outputs are images `[H, W, C]` plus per-Gaussian statistics in
+//! [`RenderAux`], indexed by canonical position (0 when culled).
 
 pub mod bench;
+
+use glam::Mat4;
+
+/// Errors of the renderer (bad shapes or settings; poisoned values are culled, not errors).
+#[non_exhaustive]
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// Input arrays disagree in length.
+    #[error("input '{name}' has {got} entries, expected {expected}")]
+    Shape {
+        /// The input.
+        name: &'static str,
+        /// Its length.
+        got: usize,
+        /// The expected length.
+        expected: usize,
+    },
+    /// A setting or camera value is unusable.
+    #[error("{0}")]
+    Settings(String),
+}
+
+/// A pinhole camera for rendering (no distortion).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RenderCamera {
+    /// Focal length x, pixels.
+    pub fx: f32,
+    /// Focal length y, pixels.
+    pub fy: f32,
+    /// Principal point x, pixels (pixel centres at +0.5).
+    pub cx: f32,
+    /// Principal point y, pixels.
+    pub cy: f32,
+    /// World-to-camera (glam, column-major), OpenCV axes.
+    pub w2c: Mat4,
+    /// Image width W.
+    pub width: u32,
+    /// Image height H.
+    pub height: u32,
+    /// Near plane (z in camera space); Gaussians closer are culled.
+    pub near: f32,
+    /// Far plane; Gaussians farther are culled.
+    pub far: f32,
+}
+
+impl From<&crate::scene::Camera> for RenderCamera {
+    fn from(c: &crate::scene::Camera) -> Self {
+        RenderCamera {
+            fx: c.fx as f32,
+            fy: c.fy as f32,
+            cx: c.cx as f32,
+            cy: c.cy as f32,
+            w2c: c.w2c_mat().as_mat4(),
+            width: c.width,
+            height: c.height,
+            near: 0.01,
+            far: 1e10,
+        }
+    }
+}
+
+/// Which frame spherical harmonics are evaluated in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ShFrame {
+    /// View direction in world coordinates (3DGS, SoM).
+    #[default]
+    World,
+    /// View direction rotated into the Gaussian's local frame (MoSca).
+    Local,
+}
+
+/// Colour of each Gaussian.
+#[derive(Debug, Clone, Copy)]
+pub enum ColorSource<'a> {
+    /// Plain RGB `[N]`.
+    Rgb(&'a [[f32; 3]]),
+    /// Spherical harmonics: `dc` `[N]` is the degree-0 colour (as in the gaussians table),
+    /// `rest` `[N, K, 3]` flattened, K = (degree+1)^2 - 1.
+    Sh {
+        /// Degree 0..=3.
+        degree: u8,
+        /// Degree-0 colour `[N]`.
+        dc: &'a [[f32; 3]],
+        /// Higher-order coefficients `[N, K, 3]`.
+        rest: &'a [f32],
+        /// Frame of the view direction.
+        frame: ShFrame,
+    },
+}
+
+/// One frame's Gaussians, canonical order, `[N]` each.
+#[derive(Debug, Clone, Copy)]
+pub struct SplatInputs<'a> {
+    /// World positions.
+    pub means: &'a [[f32; 3]],
+    /// Rotations `w, x, y, z` (normalised by the renderer; zero ones are culled).
+    pub quats: &'a [[f32; 4]],
+    /// Linear scales.
+    pub scales: &'a [[f32; 3]],
+    /// Opacities in [0, 1].
+    pub opacities: &'a [f32],
+    /// Colours.
+    pub colors: ColorSource<'a>,
+    /// Extra feature channels `[N, F]` blended like colour (F = `num_features`), or empty.
+    pub features: &'a [f32],
+    /// F, the number of feature channels (0 for none).
+    pub num_features: usize,
+}
+
+/// Rasterization settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RenderSettings {
+    /// Background colour composited behind the Gaussians.
+    pub background: [f32; 3],
+    /// Upper clamp of a Gaussian's alpha at a pixel (0.99 or 0.999).
+    pub alpha_max: f32,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        RenderSettings { background: [1.0, 1.0, 1.0], alpha_max: 0.99 }
+    }
+}
+
+/// Per-Gaussian statistics of one render, `[N]` each, canonical order, 0 when culled.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RenderAux {
+    /// Whether the Gaussian survived culling and touched at least one tile.
+    pub visible: Vec<bool>,
+    /// Screen-space radius, pixels.
+    pub radius_px: Vec<f32>,
+    /// Σ over pixels of (T·α)² — 1/σ² of the paper's Eq. 3.
+    pub sum_w2: Vec<f32>,
+    /// Σ over pixels of T·α (the Gaussian's total blending weight).
+    pub sum_w: Vec<f32>,
+    /// Number of pixels where the Gaussian contributed (α ≥ 1/255 before termination).
+    pub n_pixels: Vec<u32>,
+}
+
+/// The images of one render.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RenderOutput {
+    /// Width W.
+    pub width: usize,
+    /// Height H.
+    pub height: usize,
+    /// Colour `[H, W, 3]` composited over the background.
+    pub color: Vec<f32>,
+    /// Features `[H, W, F]` (not composited over anything).
+    pub features: Vec<f32>,
+    /// Accumulated opacity `[H, W]`.
+    pub alpha: Vec<f32>,
+    /// Expected z-depth `[H, W]` (Σ T·α·z, not normalised by alpha).
+    pub depth: Vec<f32>,
+    /// Per-Gaussian statistics.
+    pub aux: RenderAux,
+}
+
+/// Per-Gaussian results of the convergence test (paper Eq. 4/5 and the release's variant).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Convergence {
+    /// `[N]`: every pixel the Gaussian covers passes the per-pixel test (paper's product).
+    pub all_pass: Vec<bool>,
+    /// `[N]`: the pixel at the Gaussian's projected centre passes (release); false if the
+    /// centre is off-screen or the Gaussian is culled.
+    pub center_pass: Vec<bool>,
+}
+
+/// A Gaussian rasterizer.
+pub trait Renderer {
+    /// Render one frame.
+    fn render(&self, camera: &RenderCamera, inputs: &SplatInputs, settings: &RenderSettings)
+    -> Result<RenderOutput, Error>;
+
+    /// Per-Gaussian convergence against a per-pixel pass map `[H, W]` (e.g.
+    /// |rendered − ground truth|₁ < η_c).
+    fn convergence(
+        &self,
+        camera: &RenderCamera,
+        inputs: &SplatInputs,
+        settings: &RenderSettings,
+        pixel_pass: &[bool],
+    ) -> Result<Convergence, Error>;
+}
+
+/// The CPU reference rasterizer (rayon over tiles).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct CpuRenderer;
+
+impl Renderer for CpuRenderer {
+    fn render(&self, _c: &RenderCamera, _i: &SplatInputs, _s: &RenderSettings) -> Result<RenderOutput, Error> {
+        Err(Error::Settings("CPU renderer being written".into()))
+    }
+
+    fn convergence(
+        &self,
+        _c: &RenderCamera,
+        _i: &SplatInputs,
+        _s: &RenderSettings,
+        _p: &[bool],
+    ) -> Result<Convergence, Error> {
+        Err(Error::Settings("CPU renderer being written".into()))
+    }
+}
