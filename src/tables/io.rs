@@ -75,6 +75,17 @@ pub struct TableWriter {
 impl TableWriter {
     /// Start writing table `T` to `path` (created or replaced on [`TableWriter::finish`]).
     pub fn create<T: Table>(path: &Path, provenance: &Provenance) -> Result<Self> {
+        Self::create_named(path, T::NAME, T::VERSION, T::schema(), provenance)
+    }
+
+    /// Start writing a table given by name, version and schema (for generic tools).
+    pub fn create_named(
+        path: &Path,
+        name: &str,
+        version: u32,
+        schema: SchemaRef,
+        provenance: &Provenance,
+    ) -> Result<Self> {
         let io = |source| Error::Io { path: path.to_path_buf(), source };
         let dir = match path.parent() {
             Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
@@ -84,8 +95,8 @@ impl TableWriter {
         let tmp = tempfile::Builder::new().prefix(".tmp-").suffix(".parquet").tempfile_in(&dir).map_err(io)?;
         let file = tmp.reopen().map_err(io)?;
         let kv = vec![
-            KeyValue::new(KEY_TABLE.into(), T::NAME.to_string()),
-            KeyValue::new(KEY_SCHEMA_VERSION.into(), T::VERSION.to_string()),
+            KeyValue::new(KEY_TABLE.into(), name.to_string()),
+            KeyValue::new(KEY_SCHEMA_VERSION.into(), version.to_string()),
             KeyValue::new(KEY_STAGE.into(), provenance.stage.clone()),
             KeyValue::new(KEY_TOOL_VERSION.into(), crate::VERSION.to_string()),
             KeyValue::new(KEY_PARAMS.into(), provenance.params.to_string()),
@@ -97,7 +108,6 @@ impl TableWriter {
             .set_max_row_group_bytes(None)
             .set_created_by(format!("usplat4d {}", crate::VERSION))
             .build();
-        let schema = T::schema();
         let writer = ArrowWriter::try_new(file, schema.clone(), Some(props))
             .map_err(|source| Error::Parquet { path: path.to_path_buf(), source })?;
         Ok(TableWriter { path: path.to_path_buf(), tmp, writer, schema })

@@ -21,7 +21,12 @@ pub mod trajectories;
 pub mod uncertainty;
 pub mod validate;
 
+#[cfg(test)]
+mod tests;
+
 use std::path::PathBuf;
+
+use arrow::datatypes::SchemaRef;
 
 pub use io::{Provenance, Table, TableReader, TableWriter};
 
@@ -97,3 +102,26 @@ pub enum Error {
 
 /// Result alias of this module.
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// One table kind: name, schema version and schema.
+#[derive(Debug, Clone)]
+pub struct TableKind {
+    /// Table name (file stem, doc name).
+    pub name: &'static str,
+    /// Schema version.
+    pub version: u32,
+    /// Arrow schema.
+    pub schema: SchemaRef,
+}
+
+/// Every table kind: the documentation test and the interop tests walk it.
+pub fn registry() -> Vec<TableKind> {
+    fn entry<T: Table>() -> TableKind {
+        TableKind { name: T::NAME, version: T::VERSION, schema: T::schema() }
+    }
+    vec![
+        entry::<cameras::CamerasTable>(),
+        entry::<gaussians::GaussiansTable>(),
+        entry::<trajectories::TrajectoriesTable>(),
+    ]
+}
