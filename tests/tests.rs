@@ -1,1 +1,6 @@
+//! End-to-end tests: one binary that runs the real `usplat4d` CLI (see `util`).
 
+mod util;
+
+mod inspect;
+mod interop;
