@@ -57,6 +57,8 @@ pub enum Command {
     Pipeline(crate::pipeline::PipelineCommand),
     /// Print schema, row count, per-column statistics and first rows of a Parquet table.
     Inspect(crate::tables::inspect::InspectParams),
+    /// Validate a model or scene directory completely (every frame, every file).
+    Check(crate::tables::check::CheckParams),
 }
 
 /// `usplat4d import ...`
@@ -95,5 +97,6 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Metrics(p)) => metrics::bench::run(&p, ctx),
         Command::Pipeline(c) => pipeline::run_command(&c, ctx),
         Command::Inspect(p) => tables::inspect::run(&p, ctx),
+        Command::Check(p) => tables::check::run(&p, ctx),
     }
 }

@@ -117,7 +117,12 @@ pub fn read_png(path: &Path) -> Result<Image> {
         3 => (3, img.to_rgb8().into_raw()),
         _ => (4, img.to_rgba8().into_raw()),
     };
-    Ok(Image { width: w, height: h, channels, data: data.into_iter().map(|b| b as f32 / 255.0).collect() })
+    Ok(Image {
+        width: w,
+        height: h,
+        channels,
+        data: data.into_iter().map(|b| b as f32 / 255.0).collect(),
+    })
 }
 
 /// Write `img` as an 8-bit PNG (grey, RGB or RGBA by its channel count), atomically.
@@ -157,10 +162,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Write a float32 array of `shape` (C order) as `.npy` version 1.0, atomically.
 pub fn write_npy_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<()> {
     if shape.iter().product::<usize>() != data.len() {
-        return Err(Error::Npy { path: path.into(), msg: format!("shape {shape:?} does not hold {} values", data.len()) });
+        return Err(Error::Npy {
+            path: path.into(),
+            msg: format!("shape {shape:?} does not hold {} values", data.len()),
+        });
     }
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let shape_str = if shape.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+    let shape_str =
+        if shape.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
     let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
     let total = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - total % 64) % 64));
@@ -187,7 +196,9 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
     }
     let (hlen, hstart) = match bytes[6] {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 if bytes.len() >= 12 => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
+        2 | 3 if bytes.len() >= 12 => {
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+        }
         v => return Err(npy(format!("unsupported .npy version {v}"))),
     };
     let header = bytes
@@ -221,12 +232,22 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
     let n: usize = shape.iter().product();
     let body = &bytes[hstart + hlen..];
     if body.len() < n * width {
-        return Err(npy(format!("truncated: shape {shape:?} needs {} bytes, file has {}", n * width, body.len())));
+        return Err(npy(format!(
+            "truncated: shape {shape:?} needs {} bytes, file has {}",
+            n * width,
+            body.len()
+        )));
     }
     let data = if width == 4 {
-        body[..n * 4].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+        body[..n * 4]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect()
     } else {
-        body[..n * 8].chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap_or([0; 8])) as f32).collect()
+        body[..n * 8]
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap_or([0; 8])) as f32)
+            .collect()
     };
     Ok((shape, data))
 }
@@ -252,7 +273,12 @@ mod tests {
     fn png_round_trip_is_8_bit_exact() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.png");
-        let img = Image { width: 3, height: 2, channels: 4, data: (0..24).map(|i| i as f32 / 23.0).collect() };
+        let img = Image {
+            width: 3,
+            height: 2,
+            channels: 4,
+            data: (0..24).map(|i| i as f32 / 23.0).collect(),
+        };
         write_png(&p, &img).unwrap();
         let back = read_png(&p).unwrap();
         assert_eq!(back, img.quantized());

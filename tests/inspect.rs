@@ -16,15 +16,22 @@ fn inspect_prints_schema_stats_and_rows() {
         sh_rest: vec![],
     };
     let p = dir.join("gaussians.parquet");
-    usplat4d::tables::gaussians::write(&p, &g, &usplat4d::tables::Provenance::new("synth", &serde_json::json!({"seed": 3})))
-        .unwrap();
+    usplat4d::tables::gaussians::write(
+        &p,
+        &g,
+        &usplat4d::tables::Provenance::new("synth", &serde_json::json!({"seed": 3})),
+    )
+    .unwrap();
     let out = dir.ok(&["inspect", "gaussians.parquet", "--head", "1"]);
     assert!(out.contains("table: gaussians"), "{out}");
     assert!(out.contains("stage: synth"), "{out}");
     assert!(out.contains(r#"params: {"seed":3}"#), "{out}");
     assert!(out.contains("rows: 2  row groups: 1"), "{out}");
     let opacity = out.lines().find(|l| l.starts_with("opacity")).unwrap();
-    assert_eq!(opacity.split_whitespace().collect::<Vec<_>>(), ["opacity", "f32", "0", "0.250000", "0.750000"]);
+    assert_eq!(
+        opacity.split_whitespace().collect::<Vec<_>>(),
+        ["opacity", "f32", "0", "0.250000", "0.750000"]
+    );
     assert!(out.contains("first 1 rows:"), "{out}");
 }
 

@@ -2,5 +2,6 @@
 
 mod util;
 
+mod bad_inputs;
 mod inspect;
 mod interop;

@@ -26,7 +26,10 @@ pub enum Error {
 
 /// The cameras of DyCheck sequence `dir` at downscale `factor`: training camera (split
 /// train) and validation cameras (split eval), image paths in the scene layout.
-pub fn read_camera_path(dir: &std::path::Path, _factor: u32) -> Result<Vec<crate::scene::Camera>, Error> {
+pub fn read_camera_path(
+    dir: &std::path::Path,
+    _factor: u32,
+) -> Result<Vec<crate::scene::Camera>, Error> {
     Err(Error::File { path: dir.into(), msg: "being written".into() })
 }
 

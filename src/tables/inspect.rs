@@ -57,9 +57,9 @@ impl ColumnStats {
             | DataType::Int32
             | DataType::Int64
             | DataType::Float32
-            | DataType::Float64 => arrow::compute::cast(a, &DataType::Float64)
-                .ok()
-                .map(|c| c.as_primitive::<arrow::datatypes::Float64Type>().iter().flatten().collect()),
+            | DataType::Float64 => arrow::compute::cast(a, &DataType::Float64).ok().map(|c| {
+                c.as_primitive::<arrow::datatypes::Float64Type>().iter().flatten().collect()
+            }),
             DataType::Utf8 => {
                 for s in a.as_string::<i32>().iter().flatten() {
                     if self.min.as_deref().is_none_or(|m| s < m) {
@@ -117,7 +117,11 @@ pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> 
     let mut columns: Vec<ColumnStats> = schema
         .fields()
         .iter()
-        .map(|f| ColumnStats { name: f.name().clone(), type_name: type_name(f.data_type()), ..Default::default() })
+        .map(|f| ColumnStats {
+            name: f.name().clone(),
+            type_name: type_name(f.data_type()),
+            ..Default::default()
+        })
         .collect();
     let mut first: Vec<RecordBatch> = Vec::new();
     let mut taken = 0;

@@ -92,7 +92,11 @@ impl TableWriter {
             _ => PathBuf::from("."),
         };
         std::fs::create_dir_all(&dir).map_err(io)?;
-        let tmp = tempfile::Builder::new().prefix(".tmp-").suffix(".parquet").tempfile_in(&dir).map_err(io)?;
+        let tmp = tempfile::Builder::new()
+            .prefix(".tmp-")
+            .suffix(".parquet")
+            .tempfile_in(&dir)
+            .map_err(io)?;
         let file = tmp.reopen().map_err(io)?;
         let kv = vec![
             KeyValue::new(KEY_TABLE.into(), name.to_string()),
@@ -181,7 +185,8 @@ pub struct TableReader<R: Source = File> {
 impl TableReader<File> {
     /// Open `path` as table `T`, validating the whole schema.
     pub fn open<T: Table>(path: &Path) -> Result<Self> {
-        let file = File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+        let file =
+            File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
         Self::new::<T>(path, file)
     }
 }
@@ -205,7 +210,11 @@ impl<R: Source> TableReader<R> {
             problems.insert(0, format!("it is a '{name}' table"));
         }
         if !problems.is_empty() {
-            return Err(Error::Schema { path: path.to_path_buf(), table: T::NAME, problems: problems.join("; ") });
+            return Err(Error::Schema {
+                path: path.to_path_buf(),
+                table: T::NAME,
+                problems: problems.join("; "),
+            });
         }
         Ok(TableReader { path: path.to_path_buf(), source, meta })
     }
@@ -247,8 +256,10 @@ impl<R: Source> TableReader<R> {
 
     fn read(&self, groups: Option<Vec<usize>>) -> Result<RecordBatch> {
         let pq = |source| Error::Parquet { path: self.path.clone(), source };
-        let src = self.source.dup().map_err(|source| Error::Io { path: self.path.clone(), source })?;
-        let mut builder = ParquetRecordBatchReaderBuilder::new_with_metadata(src, self.meta.clone());
+        let src =
+            self.source.dup().map_err(|source| Error::Io { path: self.path.clone(), source })?;
+        let mut builder =
+            ParquetRecordBatchReaderBuilder::new_with_metadata(src, self.meta.clone());
         if let Some(g) = groups {
             builder = builder.with_row_groups(g);
         }
@@ -285,7 +296,11 @@ pub fn schema_problems(expected: &SchemaRef, found: &SchemaRef) -> Vec<String> {
     let mut problems = Vec::new();
     for f in expected.fields() {
         match found.field_with_name(f.name()) {
-            Err(_) => problems.push(format!("missing column '{}' ({})", f.name(), type_name(f.data_type()))),
+            Err(_) => problems.push(format!(
+                "missing column '{}' ({})",
+                f.name(),
+                type_name(f.data_type())
+            )),
             Ok(g) if !same_type(f.data_type(), g.data_type()) => problems.push(format!(
                 "column '{}' has type {}, expected {}",
                 f.name(),
@@ -382,7 +397,10 @@ impl<'a> Columns<'a> {
     }
 
     /// A non-null primitive column's values.
-    pub fn values<P: arrow::datatypes::ArrowPrimitiveType>(&self, name: &str) -> Result<&'a [P::Native]> {
+    pub fn values<P: arrow::datatypes::ArrowPrimitiveType>(
+        &self,
+        name: &str,
+    ) -> Result<&'a [P::Native]> {
         let a = self.get::<arrow::array::PrimitiveArray<P>>(name)?;
         self.no_nulls(name, a)?;
         Ok(a.values())
@@ -421,13 +439,14 @@ impl<'a> Columns<'a> {
     pub fn fixed_f64(&self, name: &str, n: usize) -> Result<&'a [f64]> {
         let a = self.get::<arrow::array::FixedSizeListArray>(name)?;
         self.no_nulls(name, a)?;
-        let v = a.values().as_any().downcast_ref::<arrow::array::Float64Array>().ok_or_else(|| {
-            Error::Schema {
-                path: self.path.to_path_buf(),
-                table: "(reader)",
-                problems: format!("column '{name}' items are not f64"),
-            }
-        })?;
+        let v =
+            a.values().as_any().downcast_ref::<arrow::array::Float64Array>().ok_or_else(|| {
+                Error::Schema {
+                    path: self.path.to_path_buf(),
+                    table: "(reader)",
+                    problems: format!("column '{name}' items are not f64"),
+                }
+            })?;
         let off = a.offset() * n;
         Ok(&v.values()[off..off + a.len() * n])
     }

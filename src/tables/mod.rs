@@ -8,6 +8,7 @@
 //! where it applies the column and the row or frame.
 
 pub mod cameras;
+pub mod check;
 pub mod edges;
 pub mod gaussians;
 pub mod inspect;

@@ -28,8 +28,11 @@ fn every_table_matches_its_documentation() {
             continue;
         };
         let doc = documented_columns(&md);
-        let code: Vec<(String, String)> =
-            schema.fields().iter().map(|f| (f.name().clone(), io::type_name(f.data_type()))).collect();
+        let code: Vec<(String, String)> = schema
+            .fields()
+            .iter()
+            .map(|f| (f.name().clone(), io::type_name(f.data_type())))
+            .collect();
         if doc != code {
             problems.push(format!("{name}: documented {doc:?}\n  code {code:?}"));
         }
@@ -49,7 +52,11 @@ pub(crate) fn sample_cameras() -> Vec<Camera> {
             cy: 24.0,
             width: 64,
             height: 48,
-            w2c: Camera::w2c_from_mat(glam::DMat4::from_translation(glam::DVec3::new(0.0, 0.0, 3.0 + i as f64))),
+            w2c: Camera::w2c_from_mat(glam::DMat4::from_translation(glam::DVec3::new(
+                0.0,
+                0.0,
+                3.0 + i as f64,
+            ))),
             image_path: format!("rgb/cam00/{i:05}.png"),
             depth_path: (i == 0).then(|| "depth/cam00/00000.npy".to_string()),
             mask_path: None,
@@ -96,12 +103,15 @@ fn cameras_round_trip() {
 fn model_round_trip_streams_frames() {
     let dir = tempfile::tempdir().unwrap();
     let (g, frames) = sample_model();
-    Model::save(dir.path(), &g, frames.clone().into_iter().map(Ok), &Provenance::default()).unwrap();
+    Model::save(dir.path(), &g, frames.clone().into_iter().map(Ok), &Provenance::default())
+        .unwrap();
     let m = Model::load(dir.path()).unwrap();
     assert_eq!(m.gaussians, g);
     assert_eq!(m.num_frames(), 2);
     assert_eq!(m.frame(1).unwrap(), frames[1]);
-    let r = TableReader::open::<trajectories::TrajectoriesTable>(&Model::trajectories_path(dir.path())).unwrap();
+    let r =
+        TableReader::open::<trajectories::TrajectoriesTable>(&Model::trajectories_path(dir.path()))
+            .unwrap();
     assert_eq!(r.num_row_groups(), 2, "one row group per frame");
 }
 
@@ -110,7 +120,8 @@ fn write_bad_model(dir: &Path, edit: impl Fn(&mut Vec<FrameState>)) -> PathBuf {
     edit(&mut frames);
     let p = Model::trajectories_path(dir);
     tables::gaussians::write(&Model::gaussians_path(dir), &g, &Provenance::default()).unwrap();
-    let mut w = TableWriter::create::<trajectories::TrajectoriesTable>(&p, &Provenance::default()).unwrap();
+    let mut w =
+        TableWriter::create::<trajectories::TrajectoriesTable>(&p, &Provenance::default()).unwrap();
     for f in &frames {
         w.write_group(&trajectories::frame_batch(&g.id, f)).unwrap();
     }
@@ -133,7 +144,10 @@ fn bad_trajectories_name_file_column_and_row() {
     let m = Model::load(dir.path()).unwrap();
     assert_eq!(
         m.frame(0).unwrap_err().to_string(),
-        format!("{}: column 'qw,qx,qy,qz', row 1: quaternion (0, 0, 0, 0) has norm 0, expected 1", p.display())
+        format!(
+            "{}: column 'qw,qx,qy,qz', row 1: quaternion (0, 0, 0, 0) has norm 0, expected 1",
+            p.display()
+        )
     );
     let p = write_bad_model(dir.path(), |f| f[1].frame = 2);
     let m = Model::load(dir.path()).unwrap();
