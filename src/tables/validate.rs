@@ -36,7 +36,7 @@ pub fn in_range(
     lo: f32,
     hi: f32,
 ) -> Result<()> {
-    match values.iter().position(|v| !(*v >= lo && *v <= hi)) {
+    match values.iter().position(|v| !(lo..=hi).contains(v)) {
         Some(i) => Err(Error::Value {
             path: path.to_path_buf(),
             column: column.to_string(),
@@ -58,7 +58,7 @@ pub fn unit_quaternions(
 ) -> Result<()> {
     for i in 0..w.len() {
         let n = (w[i] * w[i] + x[i] * x[i] + y[i] * y[i] + z[i] * z[i]).sqrt();
-        if !((n - 1.0).abs() <= QUAT_NORM_TOL) {
+        if n.is_nan() || (n - 1.0).abs() > QUAT_NORM_TOL {
             return Err(Error::Value {
                 path: path.to_path_buf(),
                 column: "qw,qx,qy,qz".into(),
