@@ -12,20 +12,20 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// File system error.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The image could not be decoded or encoded.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Image {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: image::ImageError,
+        cause: image::ImageError,
     },
     /// A malformed `.npy` file or an unsupported dtype or shape.
     #[error("{}: {msg}", path.display())]
@@ -106,11 +106,11 @@ impl Image {
 /// channel count (grey+alpha becomes RGBA).
 pub fn read_png(path: &Path) -> Result<Image> {
     let img = image::ImageReader::open(path)
-        .map_err(|source| Error::Io { path: path.into(), source })?
+        .map_err(|source| Error::Io { path: path.into(), cause: source })?
         .with_guessed_format()
-        .map_err(|source| Error::Io { path: path.into(), source })?
+        .map_err(|source| Error::Io { path: path.into(), cause: source })?
         .decode()
-        .map_err(|source| Error::Image { path: path.into(), source })?;
+        .map_err(|source| Error::Image { path: path.into(), cause: source })?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let (channels, data) = match img.color().channel_count() {
         1 => (1, img.to_luma8().into_raw()),
@@ -139,7 +139,7 @@ pub fn write_png(path: &Path, img: &Image) -> Result<()> {
         image::codecs::png::FilterType::Adaptive,
     )
     .write_image(&img.to_u8(), img.width as u32, img.height as u32, color)
-    .map_err(|source| Error::Image { path: path.into(), source })?;
+    .map_err(|source| Error::Image { path: path.into(), cause: source })?;
     write_atomic(path, &buf)
 }
 
@@ -147,7 +147,7 @@ use image::ImageEncoder;
 
 /// Write `bytes` to `path` through a temporary file in the same directory and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |source| Error::Io { path: path.into(), source };
+    let io = |source| Error::Io { path: path.into(), cause: source };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -190,7 +190,7 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
     let mut bytes = Vec::new();
     std::fs::File::open(path)
         .and_then(|mut f| f.read_to_end(&mut bytes))
-        .map_err(|source| Error::Io { path: path.into(), source })?;
+        .map_err(|source| Error::Io { path: path.into(), cause: source })?;
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(npy("not a .npy file (bad magic)".into()));
     }

@@ -108,8 +108,8 @@ pub struct Summary {
 
 /// Describe the Parquet file at `path`, reading it batch by batch.
 pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> {
-    let pq = |source| Error::Parquet { path: path.to_path_buf(), source };
-    let file = File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+    let pq = |source| Error::Parquet { path: path.to_path_buf(), cause: source };
+    let file = File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
     let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq)?;
     let meta = builder.metadata().clone();
     let schema = builder.schema().clone();
@@ -126,7 +126,7 @@ pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> 
     let mut first: Vec<RecordBatch> = Vec::new();
     let mut taken = 0;
     for b in reader {
-        let b = b.map_err(|source| Error::Arrow { path: path.to_path_buf(), source })?;
+        let b = b.map_err(|source| Error::Arrow { path: path.to_path_buf(), cause: source })?;
         for (s, c) in columns.iter_mut().zip(b.columns()) {
             s.update(c);
         }
@@ -138,7 +138,7 @@ pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> 
     }
     let head = arrow::util::pretty::pretty_format_batches(&first)
         .map(|t| t.to_string())
-        .map_err(|source| Error::Arrow { path: path.to_path_buf(), source })?;
+        .map_err(|source| Error::Arrow { path: path.to_path_buf(), cause: source })?;
     let metadata = meta
         .file_metadata()
         .key_value_metadata()

@@ -86,7 +86,7 @@ impl TableWriter {
         schema: SchemaRef,
         provenance: &Provenance,
     ) -> Result<Self> {
-        let io = |source| Error::Io { path: path.to_path_buf(), source };
+        let io = |source| Error::Io { path: path.to_path_buf(), cause: source };
         let dir = match path.parent() {
             Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
             _ => PathBuf::from("."),
@@ -113,13 +113,13 @@ impl TableWriter {
             .set_created_by(format!("usplat4d {}", crate::VERSION))
             .build();
         let writer = ArrowWriter::try_new(file, schema.clone(), Some(props))
-            .map_err(|source| Error::Parquet { path: path.to_path_buf(), source })?;
+            .map_err(|source| Error::Parquet { path: path.to_path_buf(), cause: source })?;
         Ok(TableWriter { path: path.to_path_buf(), tmp, writer, schema })
     }
 
     /// Write `batch` as one row group (one frame of a per-frame table).
     pub fn write_group(&mut self, batch: &RecordBatch) -> Result<()> {
-        let pq = |source| Error::Parquet { path: self.path.clone(), source };
+        let pq = |source| Error::Parquet { path: self.path.clone(), cause: source };
         if batch.schema().fields() != self.schema.fields() {
             return Err(Error::Schema {
                 path: self.path.clone(),
@@ -135,9 +135,9 @@ impl TableWriter {
     /// Close the file and rename it into place.
     pub fn finish(self) -> Result<()> {
         let path = self.path;
-        self.writer.close().map_err(|source| Error::Parquet { path: path.clone(), source })?;
-        self.tmp.as_file().sync_all().map_err(|source| Error::Io { path: path.clone(), source })?;
-        self.tmp.persist(&path).map_err(|e| Error::Io { path: path.clone(), source: e.error })?;
+        self.writer.close().map_err(|source| Error::Parquet { path: path.clone(), cause: source })?;
+        self.tmp.as_file().sync_all().map_err(|source| Error::Io { path: path.clone(), cause: source })?;
+        self.tmp.persist(&path).map_err(|e| Error::Io { path: path.clone(), cause: e.error })?;
         Ok(())
     }
 }
@@ -186,7 +186,7 @@ impl TableReader<File> {
     /// Open `path` as table `T`, validating the whole schema.
     pub fn open<T: Table>(path: &Path) -> Result<Self> {
         let file =
-            File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+            File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
         Self::new::<T>(path, file)
     }
 }
@@ -195,7 +195,7 @@ impl<R: Source> TableReader<R> {
     /// Read table `T` from `source`; `path` names it in errors.
     pub fn new<T: Table>(path: &Path, source: R) -> Result<Self> {
         let meta = ArrowReaderMetadata::load(&source, Default::default())
-            .map_err(|source| Error::Parquet { path: path.to_path_buf(), source })?;
+            .map_err(|source| Error::Parquet { path: path.to_path_buf(), cause: source })?;
         let problems = schema_problems(&T::schema(), meta.schema());
         let kv_table = meta
             .metadata()
@@ -255,9 +255,9 @@ impl<R: Source> TableReader<R> {
     }
 
     fn read(&self, groups: Option<Vec<usize>>) -> Result<RecordBatch> {
-        let pq = |source| Error::Parquet { path: self.path.clone(), source };
+        let pq = |source| Error::Parquet { path: self.path.clone(), cause: source };
         let src =
-            self.source.dup().map_err(|source| Error::Io { path: self.path.clone(), source })?;
+            self.source.dup().map_err(|source| Error::Io { path: self.path.clone(), cause: source })?;
         let mut builder =
             ParquetRecordBatchReaderBuilder::new_with_metadata(src, self.meta.clone());
         if let Some(g) = groups {
@@ -267,10 +267,10 @@ impl<R: Source> TableReader<R> {
         let schema = arrow::array::RecordBatchReader::schema(&reader);
         let mut batches = Vec::new();
         for b in reader {
-            batches.push(b.map_err(|source| Error::Arrow { path: self.path.clone(), source })?);
+            batches.push(b.map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })?);
         }
         arrow::compute::concat_batches(&schema, &batches)
-            .map_err(|source| Error::Arrow { path: self.path.clone(), source })
+            .map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })
     }
 
     /// All rows as one batch.

@@ -36,28 +36,28 @@ pub use io::{Provenance, Table, TableReader, TableWriter};
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be opened, created, written or renamed.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The Parquet layer failed (not a Parquet file, truncated, corrupt).
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Parquet {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: parquet::errors::ParquetError,
+        cause: parquet::errors::ParquetError,
     },
     /// The Arrow layer failed while assembling or decoding a batch.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Arrow {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: arrow::error::ArrowError,
+        cause: arrow::error::ArrowError,
     },
     /// The file's schema differs from the table's; lists every mismatch.
     #[error("{}: not a valid '{table}' table: {problems}", path.display())]
