@@ -185,7 +185,9 @@ impl DycheckCamera {
         let m = cam.w2c_mat();
         let r = DMat3::from_mat4(m);
         let t = m.w_axis.truncate();
-        let position = -(r.transpose() * t);
+        // The true inverse (not Oᵀ): stored rotations are orthonormal only to ~1e-7, and
+        // −O·(−O⁻¹·t) must give back t.
+        let position = -(r.inverse() * t);
         if !(cam.fx > 0.0 && cam.fy > 0.0) {
             return Err(Error::Scene(format!(
                 "camera {} frame {}: focal lengths must be positive, got {} {}",

@@ -254,7 +254,7 @@ fn copy_keypoints(data: &Path, out: &Path) -> Result<Option<String>> {
     }
     let io = |path: &Path| {
         let path = path.to_path_buf();
-        move |source| Error::Io { path, source }
+        move |error| Error::Io { path, error }
     };
     let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
         .map_err(io(&dir))?

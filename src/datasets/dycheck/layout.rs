@@ -18,11 +18,11 @@
 //!
 //! `scene.json`: `center` = middle of the axis-aligned box around every valid training
 //! depth pixel unprojected (pinhole, distortion ignored) and every camera centre; `scale` =
-//! 1 / its longest side; `near`/`far` = min/max valid depth × scale. `extra.json`: factor 2,
-//! `fps` from the scene's own `scene.json` (30 when absent), `bbox` (that box), `lookat`
-//! (least-squares closest point to all optical axes, as DyCheck's `tringulate_rays`) and
-//! `bbox`/`lookat` in the normalised frame `(x − center)·scale`, `up` = mean of the cameras'
-//! up axes (−row 1 of O), normalised.
+//! 1 / its longest side; `near`/`far` = min/max valid depth × scale. `extra.json`:
+//! `factor` 2; `fps` from the scene's own `scene.json` (30 when absent); `bbox` (that box)
+//! and `lookat` (least-squares closest point to all optical axes, like DyCheck's
+//! `tringulate_rays`), both in the normalised frame `(x − center)·scale` as DyCheck stores
+//! them; `up` = mean of the cameras' up axes (−row 1 of O), normalised.
 
 use std::collections::HashSet;
 use std::path::Path;

@@ -83,20 +83,20 @@ pub enum Error {
         needed_by: Option<String>,
     },
     /// A file could not be read or written.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
+        /// The underlying error (in the message, not chained, so `{:#}` prints it once).
+        error: std::io::Error,
     },
     /// A file is not valid JSON.
-    #[error("{}: malformed JSON: {source}", path.display())]
+    #[error("{}: malformed JSON: {error}", path.display())]
     Json {
         /// The file.
         path: PathBuf,
-        /// The parser's error (with line and column).
-        source: serde_json::Error,
+        /// The parser's error (with line and column; in the message, not chained).
+        error: serde_json::Error,
     },
     /// A JSON key is missing or has a wrong value.
     #[error("{}: key '{key}': {msg}", path.display())]
@@ -127,14 +127,14 @@ pub type Result<T> = std::result::Result<T, Error>;
 
 /// Read `path` as JSON; a missing file is [`Error::Missing`] with `needed_by`.
 fn read_json(path: &std::path::Path, needed_by: Option<&str>) -> Result<serde_json::Value> {
-    let bytes = std::fs::read(path).map_err(|source| {
-        if source.kind() == std::io::ErrorKind::NotFound {
+    let bytes = std::fs::read(path).map_err(|error| {
+        if error.kind() == std::io::ErrorKind::NotFound {
             Error::Missing { path: path.into(), needed_by: needed_by.map(String::from) }
         } else {
-            Error::Io { path: path.into(), source }
+            Error::Io { path: path.into(), error }
         }
     })?;
-    serde_json::from_slice(&bytes).map_err(|source| Error::Json { path: path.into(), source })
+    serde_json::from_slice(&bytes).map_err(|error| Error::Json { path: path.into(), error })
 }
 
 /// Write `value` as pretty JSON (sorted keys), atomically.
