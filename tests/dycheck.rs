@@ -367,16 +367,52 @@ fn cases() -> Vec<Case> {
             breaks: |_| {},
             stderr: |d| {
                 format!(
-                    "warning: {} not found: training images get no depth\n\
-                     warning: {} not found: evaluation images get no covisibility mask\n\
-                     error: {}: file not found (needed by '0_00000' of splits/train.json)\n",
-                    d.join("depth/2x").display(),
-                    d.join("covisible/2x/val").display(),
+                    "{}error: {}: file not found (needed by '0_00000' of splits/train.json)\n",
+                    no_depth_no_masks(d),
+                    d.join("rgb/2x/0_00000.png").display()
+                )
+            },
+        },
+        Case {
+            name: "corrupt image",
+            args: &[],
+            breaks: |d| {
+                std::fs::create_dir_all(d.join("rgb/2x")).unwrap();
+                std::fs::write(d.join("rgb/2x/0_00000.png"), "garbage").unwrap();
+            },
+            stderr: |d| {
+                format!(
+                    "{}error: {}: Format error decoding Png: Invalid PNG signature.\n",
+                    no_depth_no_masks(d),
+                    d.join("rgb/2x/0_00000.png").display()
+                )
+            },
+        },
+        Case {
+            name: "image of the wrong size",
+            args: &[],
+            breaks: |d| {
+                image_io::write_png(&d.join("rgb/2x/0_00000.png"), &pattern(4, 3, 0, 4)).unwrap();
+            },
+            stderr: |d| {
+                format!(
+                    "{}error: {}: image is 4x3 but its camera at factor 2 is 360x480 (W x H)\n",
+                    no_depth_no_masks(d),
                     d.join("rgb/2x/0_00000.png").display()
                 )
             },
         },
     ]
+}
+
+/// The warnings of a full import of a sequence without depth and covisibility folders.
+fn no_depth_no_masks(d: &Path) -> String {
+    format!(
+        "warning: {} not found: training images get no depth\n\
+         warning: {} not found: evaluation images get no covisibility mask\n",
+        d.join("depth/2x").display(),
+        d.join("covisible/2x/val").display()
+    )
 }
 
 #[test]

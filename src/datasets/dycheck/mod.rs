@@ -114,12 +114,25 @@ pub enum Error {
     /// The scene cannot be written as a DyCheck sequence.
     #[error("{0}")]
     Scene(String),
-    /// An image or array file failed.
-    #[error(transparent)]
-    Image(#[from] crate::image_io::Error),
-    /// The cameras table failed.
-    #[error(transparent)]
-    Table(#[from] crate::tables::Error),
+    /// An image or array file failed. (Not chained as a source: the message already holds
+    /// the cause, and `{:#}` would print it again.)
+    #[error("{0}")]
+    Image(crate::image_io::Error),
+    /// The cameras table failed (not chained, like [`Error::Image`]).
+    #[error("{0}")]
+    Table(crate::tables::Error),
+}
+
+impl From<crate::image_io::Error> for Error {
+    fn from(e: crate::image_io::Error) -> Self {
+        Error::Image(e)
+    }
+}
+
+impl From<crate::tables::Error> for Error {
+    fn from(e: crate::tables::Error) -> Self {
+        Error::Table(e)
+    }
 }
 
 /// Result alias of this module.
