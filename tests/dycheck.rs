@@ -201,6 +201,27 @@ fn layout_round_trip() {
         }
     }
 
+    let kp = layout.join("keypoint/2x/train");
+    std::fs::create_dir_all(&kp).unwrap();
+    std::fs::write(kp.join("0_00002.json"), "[[10.0, 20.0, 1.0]]").unwrap();
+    std::fs::write(kp.join("skeleton.json"), r#"{"parents": [null]}"#).unwrap();
+    let norm_dir = tmp.path().join("normalised");
+    let (code, _) = import(&layout, &norm_dir, &["--quiet", "--world", "dycheck"]);
+    assert_eq!(code, 0);
+    let meta = read_json(&norm_dir.join("scene.json"));
+    assert_eq!(meta["keypoints"], "keypoint/2x/train");
+    assert_eq!(
+        std::fs::read(norm_dir.join("keypoint/2x/train/0_00002.json")).unwrap(),
+        b"[[10.0, 20.0, 1.0]]"
+    );
+    assert!(norm_dir.join("keypoint/2x/train/skeleton.json").exists());
+    let scale = info["scale"].as_f64().unwrap();
+    assert_eq!(meta["dycheck_scene"]["scale"], scale);
+    let rel = scene.cameras[0].depth_path.as_ref().unwrap();
+    let (_, d0) = image_io::read_npy_f32(&scene.resolve(rel)).unwrap();
+    let (_, d1) = image_io::read_npy_f32(&norm_dir.join(rel)).unwrap();
+    assert!(d0.iter().zip(&d1).all(|(a, b)| *b == (*a as f64 * scale) as f32));
+
     let full_dir = tmp.path().join("full");
     let (code, _) = import(&layout, &full_dir, &["--quiet", "--factor", "1"]);
     assert_eq!(code, 0);

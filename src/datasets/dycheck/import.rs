@@ -78,6 +78,7 @@ pub fn run_import(p: &ImportDycheckParams, ctx: &Context) -> anyhow::Result<()> 
 
 /// Import sequence `p.data` into scene directory `p.out`; returns the written scene.
 pub fn import(p: &ImportDycheckParams, ctx: &Context) -> Result<Scene> {
+    let _span = tracing::info_span!("import_dycheck").entered();
     if p.factor == 0 {
         return Err(Error::Factor(p.factor));
     }

@@ -81,6 +81,7 @@ impl Extent {
 /// Write `scene` (rendered along a DyCheck camera path; eval masks = covisibility, train
 /// images with depth) in the DyCheck iPhone folder layout under `out`. See the module docs.
 pub fn write_layout(scene: &Scene, out: &Path, ctx: &Context) -> Result<()> {
+    let _span = tracing::info_span!("dycheck_layout").entered();
     let jobs = plan(scene)?;
     let bar = ctx.progress(jobs.len() as u64, "dycheck layout");
     let results: Vec<Result<Option<Extent>>> = jobs
@@ -334,4 +335,71 @@ fn scene_fps(scene: &Scene) -> f64 {
         .and_then(|v| v.get("fps").and_then(|f| f.as_f64()))
         .filter(|f| *f > 0.0)
         .unwrap_or(DEFAULT_FPS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cam(camera: &str, frame: u32, split: Split) -> Camera {
+        Camera {
+            frame,
+            camera: camera.into(),
+            split,
+            fx: 50.0,
+            fy: 50.0,
+            cx: 8.0,
+            cy: 6.0,
+            width: 16,
+            height: 12,
+            w2c: Camera::w2c_from_mat(glam::DMat4::IDENTITY),
+            image_path: format!("rgb/{camera}/{frame:05}.png"),
+            depth_path: (split == Split::Train).then(|| format!("depth/{camera}/{frame:05}.npy")),
+            mask_path: (split == Split::Eval).then(|| format!("mask/{camera}/{frame:05}.png")),
+            angle_offset_deg: None,
+            distortion: None,
+        }
+    }
+
+    fn plan_err(cameras: Vec<Camera>) -> String {
+        let scene = Scene { dir: "s".into(), cameras };
+        plan(&scene).err().map(|e| e.to_string()).unwrap_or_default()
+    }
+
+    #[test]
+    fn plan_names_images_and_rejects_what_dycheck_cannot_hold() {
+        let ok =
+            vec![cam("0", 1, Split::Train), cam("0", 0, Split::Train), cam("2", 1, Split::Eval)];
+        let scene = Scene { dir: "s".into(), cameras: ok.clone() };
+        let names: Vec<String> = plan(&scene).unwrap().into_iter().map(|j| j.name).collect();
+        assert_eq!(names, ["0_00000", "0_00001", "2_00001"]);
+
+        let mut named = ok.clone();
+        named[2].camera = "cam03".into();
+        assert_eq!(
+            plan_err(named),
+            "camera name 'cam03' is not a DyCheck camera id (a non-negative integer)"
+        );
+        let mut no_mask = ok.clone();
+        no_mask[2].mask_path = None;
+        assert_eq!(plan_err(no_mask), "evaluation camera '2' frame 1 has no covisibility mask");
+        let mut no_depth = ok.clone();
+        no_depth[0].depth_path = None;
+        assert_eq!(plan_err(no_depth), "training camera '0' frame 1 has no depth");
+        let mut late = ok.clone();
+        late[2].frame = 2;
+        assert_eq!(
+            plan_err(late),
+            "evaluation camera '2' frame 2 is past the last training frame 1"
+        );
+        let mut two = ok.clone();
+        two[1].camera = "1".into();
+        assert_eq!(
+            plan_err(two),
+            "training images come from cameras '1' and '0'; DyCheck's training split is one camera"
+        );
+        let mut twice = ok;
+        twice.push(cam("2", 1, Split::Eval));
+        assert_eq!(plan_err(twice), "camera '2' frame 1 appears twice");
+    }
 }

@@ -38,7 +38,7 @@ use std::path::PathBuf;
 pub use camera_json::DycheckCamera;
 pub use import::{ImportDycheckParams, run_import};
 pub use layout::write_layout;
-pub use sequence::{Sequence, read_camera_path};
+pub use sequence::{Entry, Sequence, read_camera_path};
 
 /// Which world frame imported cameras and depth use.
 #[derive(
