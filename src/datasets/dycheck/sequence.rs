@@ -208,12 +208,21 @@ impl Sequence {
                 Some((info.center, info.scale))
             }
         };
-        Ok(self
-            .entries
+        self.entries
             .iter()
             .map(|e| {
                 let cam_name = e.camera_id.to_string();
                 let mut c = e.camera.to_camera(factor, transform, e.frame, &cam_name, e.split);
+                if c.width == 0 || c.height == 0 {
+                    return Err(Error::Key {
+                        path: self.dir.join("camera").join(format!("{}.json", e.name)),
+                        key: "image_size".into(),
+                        msg: format!(
+                            "{:?} at factor {factor} rounds to an empty image",
+                            e.camera.image_size
+                        ),
+                    });
+                }
                 c.image_path = format!("rgb/{cam_name}/{:05}.png", e.frame);
                 match e.split {
                     Split::Train => {
@@ -223,9 +232,9 @@ impl Sequence {
                         c.mask_path = Some(format!("mask/{cam_name}/{:05}.png", e.frame))
                     }
                 }
-                c
+                Ok(c)
             })
-            .collect())
+            .collect()
     }
 }
 
@@ -286,6 +295,17 @@ mod tests {
         assert_eq!((c1.fx, c1.fy), (raw.focal_length / 2.0, raw.focal_length / 2.0));
         assert_eq!((c1.cx, c1.cy), (raw.principal_point[0] / 2.0, raw.principal_point[1] / 2.0));
         assert!((c1.center() - glam::DVec3::from_array(raw.position)).length() < 1e-9);
+    }
+
+    #[test]
+    fn factor_too_large_for_the_image_is_an_error() {
+        let Some(dir) = windmill() else { return };
+        let err = read_camera_path(&dir, 2000).unwrap_err();
+        let want = format!(
+            "{}: key 'image_size': [720, 960] at factor 2000 rounds to an empty image",
+            dir.join("camera/0_00000.json").display()
+        );
+        assert_eq!(err.to_string(), want);
     }
 
     #[test]
