@@ -48,8 +48,8 @@ pub struct ImportDycheckParams {
     /// Scene directory to write.
     #[arg(long, value_name = "SCENE_DIR")]
     pub out: PathBuf,
-    /// Downscale factor: reads rgb/<factor>x and depth/<factor>x, intrinsics divided by it
-    /// (DyCheck's benchmark resolution is 2: 360x480).
+    /// Downscale factor F: reads rgb/Fx and depth/Fx, divides the intrinsics by F (DyCheck's
+    /// benchmark resolution is F = 2: 360x480).
     #[arg(long, default_value_t = default_factor())]
     #[serde(default = "default_factor")]
     pub factor: u32,
@@ -269,4 +269,34 @@ fn copy_keypoints(data: &Path, out: &Path) -> Result<Option<String>> {
         image_io::write_atomic(&out.join(REL).join(name), &bytes)?;
     }
     Ok(Some(REL.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn params_defaults_and_unknown_keys() {
+        let p: ImportDycheckParams =
+            serde_json::from_str(r#"{"data": "seq", "out": "scene"}"#).unwrap();
+        assert_eq!((p.factor, p.world, p.cameras_only), (2, World::Source, false));
+        let p: ImportDycheckParams = serde_json::from_str(
+            r#"{"data": "s", "out": "o", "world": "dycheck", "cameras-only": true}"#,
+        )
+        .unwrap();
+        assert_eq!((p.world, p.cameras_only), (World::Dycheck, true));
+        let err =
+            serde_json::from_str::<ImportDycheckParams>(r#"{"data": "s", "out": "o", "factr": 2}"#)
+                .unwrap_err()
+                .to_string();
+        assert!(err.starts_with("unknown field `factr`"), "{err}");
+    }
+
+    #[test]
+    fn rgb_and_grey_become_rgba() {
+        let rgb = Image { width: 1, height: 1, channels: 3, data: vec![0.1, 0.2, 0.3] };
+        assert_eq!(to_rgba(rgb).data, [0.1, 0.2, 0.3, 1.0]);
+        let grey = Image { width: 1, height: 1, channels: 1, data: vec![0.5] };
+        assert_eq!(to_rgba(grey).data, [0.5, 0.5, 0.5, 1.0]);
+    }
 }
