@@ -15,6 +15,8 @@
 //! `splits/{train,val}.json`, `dataset.json`, `metadata.json`, `scene.json`, `extra.json`.
 //! Camera names must be DyCheck camera ids (non-negative integers); the training images
 //! must be one camera with frames 0..T-1, each with depth; evaluation images need a mask.
+//! Training masks and evaluation depth are not written (DyCheck has neither), nor are
+//! `points.npy` and keypoints.
 //!
 //! `scene.json`: `center` = middle of the axis-aligned box around every valid training
 //! depth pixel unprojected (pinhole, distortion ignored) and every camera centre; `scale` =
