@@ -1,7 +1,9 @@
-//! End-to-end tests: one binary that runs the real `usplat4d` CLI (see `util`).
+//! End-to-end tests: one test binary that runs the real `usplat4d` CLI (STYLE.md 14; the
+//! harness is in `util`).
 
 mod util;
 
 mod bad_inputs;
+mod dycheck;
 mod inspect;
 mod interop;
