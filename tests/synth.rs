@@ -47,7 +47,8 @@ fn check_scene(dir: &Path) {
         for i in 0..48 * 40 {
             let m = mask.data[i] > 0.5;
             assert_eq!(m, depth[i] > 0.0, "{} pixel {i}", c.image_path);
-            assert_eq!(m, rgba.data[i * 4 + 3] > 0.5, "{} pixel {i}", c.image_path);
+            // Coverage is k/ss²; the 8-bit alpha of exactly one half is 128/255.
+            assert_eq!(m, rgba.data[i * 4 + 3] > 0.51, "{} pixel {i}", c.image_path);
             covered += m as usize;
         }
     }
@@ -68,15 +69,20 @@ fn check_scene(dir: &Path) {
             assert!((u - f2.xy[i][0] as f64).abs() < 1e-2 && (v - f2.xy[i][1] as f64).abs() < 1e-2);
             if f2.visible[i] {
                 visible += 1;
-                let (x, y) = (u as usize, v as usize);
-                on_mask += (x < 48 && y < 40 && mask.data[y * 48 + x] > 0.5) as usize;
+                let near_mask = (-1..=1).any(|dy| {
+                    (-1..=1).any(|dx| {
+                        let (x, y) = (u as i64 + dx, v as i64 + dy);
+                        (0..48).contains(&x) && (0..40).contains(&y) && mask.data[(y * 48 + x) as usize] > 0.5
+                    })
+                });
+                on_mask += near_mask as usize;
             }
         }
     }
-    // About half the surface faces the camera; visible tracks land on the object (a few
-    // silhouette pixels have coverage below one half).
-    assert!(visible > 4 * 40 / 5 && visible < 4 * 40, "{visible} visible");
-    assert!(on_mask as f64 >= 0.8 * visible as f64, "{on_mask} of {visible} on the mask");
+    // A good part of the surface faces the camera; visible tracks land on the object or
+    // within one pixel of it (silhouette pixels may have coverage below one half).
+    assert!(visible > 4 * 40 / 5, "{visible} visible");
+    assert!(on_mask as f64 >= 0.95 * visible as f64, "{on_mask} of {visible} on the mask");
 
     let oracle = Model::load(&dir.join("oracle")).unwrap();
     assert_eq!((oracle.gaussians.len(), oracle.num_frames()), (300, 4));
@@ -126,7 +132,7 @@ fn truncated_glb_is_a_clear_error() {
     assert_eq!(code, 2);
     assert_eq!(
         err,
-        format!("error: {}: not a usable glTF file: GLB format error: Length was out of bounds\n", bad.display())
+        format!("error: {}: not a usable glTF file: truncated: the GLB header declares 162852 bytes, the file has 1000\n", bad.display())
     );
 }
 

@@ -127,6 +127,15 @@ impl Asset {
 pub fn load(path: &Path) -> Result<Asset, Error> {
     let malformed = |msg: String| Error::Malformed { path: path.to_path_buf(), msg };
     let bytes = std::fs::read(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+    if bytes.len() >= 12 && &bytes[..4] == b"glTF" {
+        let declared = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize;
+        if declared > bytes.len() {
+            return Err(malformed(format!(
+                "truncated: the GLB header declares {declared} bytes, the file has {}",
+                bytes.len()
+            )));
+        }
+    }
     let gltf::Gltf { document, blob } = gltf::Gltf::from_slice(&bytes).map_err(|e| malformed(e.to_string()))?;
     let base = path.parent().unwrap_or(Path::new("."));
     for b in document.buffers() {

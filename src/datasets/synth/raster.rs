@@ -226,8 +226,9 @@ pub fn resolve(s: &Samples, shade: &(dyn Fn(u32, [f32; 3]) -> Vec3 + Sync)) -> R
 pub const VIS_TOL: f32 = 5e-3;
 
 /// Whether world point `p` on triangle `tri` is visible in the view whose z-buffer is `s`:
-/// inside the image, and some sample of the 3×3 neighbourhood of its projection holds `tri`
-/// or lies no nearer than `p` (within [`VIS_TOL`]). Returns the pixel position too
+/// inside the image, and either the sample nearest its projection lies no nearer than `p`
+/// (within [`VIS_TOL`]; empty samples are infinitely far) or some sample of the 3×3
+/// neighbourhood holds `tri` itself. Returns the pixel position too
 /// (`None` when behind the camera).
 pub fn visibility(view: &View, s: &Samples, p: Vec3, tri: u32) -> Option<(Vec2, bool)> {
     let (q, z) = view.project(p)?;
@@ -235,7 +236,8 @@ pub fn visibility(view: &View, s: &Samples, p: Vec3, tri: u32) -> Option<(Vec2, 
         return Some((q, false));
     }
     let (sx, sy) = ((q.x * s.ss as f32) as isize, (q.y * s.ss as f32) as isize);
-    let mut vis = false;
+    let at = |x: isize, y: isize| s.data[y.clamp(0, s.height as isize - 1) as usize * s.width + x.clamp(0, s.width as isize - 1) as usize];
+    let mut vis = z <= at(sx, sy).z * (1.0 + VIS_TOL);
     for dy in -1..=1 {
         for dx in -1..=1 {
             let (x, y) = (sx + dx, sy + dy);
@@ -243,7 +245,7 @@ pub fn visibility(view: &View, s: &Samples, p: Vec3, tri: u32) -> Option<(Vec2, 
                 continue;
             }
             let smp = s.data[y as usize * s.width + x as usize];
-            vis |= smp.tri == tri || z <= smp.z * (1.0 + VIS_TOL);
+            vis |= smp.tri == tri;
         }
     }
     Some((q, vis))
