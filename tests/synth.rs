@@ -22,12 +22,29 @@ fn shared_data() -> Option<PathBuf> {
 
 /// Run `usplat4d -q synth ARGS`; returns (exit code, stderr).
 fn synth(args: &[&str]) -> (i32, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_usplat4d")).arg("-q").arg("synth").args(args).output().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
+        .arg("-q")
+        .arg("synth")
+        .args(args)
+        .output()
+        .unwrap();
     (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
 }
 
-const TINY: [&str; 12] =
-    ["--frames", "4", "--cameras", "3", "--width", "48", "--height", "40", "--gaussians", "300", "--tracks", "40"];
+const TINY: [&str; 12] = [
+    "--frames",
+    "4",
+    "--cameras",
+    "3",
+    "--width",
+    "48",
+    "--height",
+    "40",
+    "--gaussians",
+    "300",
+    "--tracks",
+    "40",
+];
 
 /// Check every file and table of a tiny scene and their mutual consistency.
 fn check_scene(dir: &Path) {
@@ -35,14 +52,16 @@ fn check_scene(dir: &Path) {
     assert_eq!(scene.cameras.len(), 12);
     assert_eq!(scene.num_frames(), 4);
     assert_eq!(scene.eval().count(), 8);
-    let offsets: Vec<f32> = scene.cameras[..3].iter().map(|c| c.angle_offset_deg.unwrap()).collect();
+    let offsets: Vec<f32> =
+        scene.cameras[..3].iter().map(|c| c.angle_offset_deg.unwrap()).collect();
     assert_eq!(offsets, vec![0.0, 120.0, 240.0]);
     let mut covered = 0;
     for c in &scene.cameras {
         let rgba = read_png(&scene.resolve(&c.image_path)).unwrap();
         assert_eq!((rgba.width, rgba.height, rgba.channels), (48, 40, 4));
         let mask = read_png(&scene.resolve(c.mask_path.as_deref().unwrap())).unwrap();
-        let (shape, depth) = read_npy_f32(&scene.resolve(c.depth_path.as_deref().unwrap())).unwrap();
+        let (shape, depth) =
+            read_npy_f32(&scene.resolve(c.depth_path.as_deref().unwrap())).unwrap();
         assert_eq!(shape, vec![40, 48]);
         for i in 0..48 * 40 {
             let m = mask.data[i] > 0.5;
@@ -72,7 +91,9 @@ fn check_scene(dir: &Path) {
                 let near_mask = (-1..=1).any(|dy| {
                     (-1..=1).any(|dx| {
                         let (x, y) = (u as i64 + dx, v as i64 + dy);
-                        (0..48).contains(&x) && (0..40).contains(&y) && mask.data[(y * 48 + x) as usize] > 0.5
+                        (0..48).contains(&x)
+                            && (0..40).contains(&y)
+                            && mask.data[(y * 48 + x) as usize] > 0.5
                     })
                 });
                 on_mask += near_mask as usize;
@@ -88,9 +109,15 @@ fn check_scene(dir: &Path) {
     assert_eq!((oracle.gaussians.len(), oracle.num_frames()), (300, 4));
     assert!(oracle.gaussians.dynamic.iter().all(|d| *d));
     let f = oracle.frame(0).unwrap();
-    let r = f.position.iter().map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt()).fold(0f32, f32::max);
+    let r = f
+        .position
+        .iter()
+        .map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt())
+        .fold(0f32, f32::max);
     assert!(r <= 1.0 + 1e-4, "normalised into the unit sphere, max radius {r}");
-    assert!(std::fs::read_to_string(dir.join("scene.json")).unwrap().contains("\"bbox_diagonal\": 2.0"));
+    assert!(
+        std::fs::read_to_string(dir.join("scene.json")).unwrap().contains("\"bbox_diagonal\": 2.0")
+    );
     assert!(scene.train().all(|c| c.split == Split::Train && c.camera == "cam00"));
 }
 
@@ -99,7 +126,14 @@ fn embedded_fox_tiny_scene() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("fox");
     let fox = fox();
-    let mut args = vec!["--gltf", fox.to_str().unwrap(), "--animation", "Walk", "--out", out.to_str().unwrap()];
+    let mut args = vec![
+        "--gltf",
+        fox.to_str().unwrap(),
+        "--animation",
+        "Walk",
+        "--out",
+        out.to_str().unwrap(),
+    ];
     args.extend(TINY);
     let (code, err) = synth(&args);
     assert_eq!((code, err.as_str()), (0, ""));
@@ -132,7 +166,10 @@ fn truncated_glb_is_a_clear_error() {
     assert_eq!(code, 2);
     assert_eq!(
         err,
-        format!("error: {}: not a usable glTF file: truncated: the GLB header declares 162852 bytes, the file has 1000\n", bad.display())
+        format!(
+            "error: {}: not a usable glTF file: truncated: the GLB header declares 162852 bytes, the file has 1000\n",
+            bad.display()
+        )
     );
 }
 
@@ -141,7 +178,14 @@ fn unknown_animation_lists_the_available_ones() {
     let tmp = tempfile::tempdir().unwrap();
     let fox = fox();
     let out = tmp.path().join("out");
-    let (code, err) = synth(&["--gltf", fox.to_str().unwrap(), "--animation", "Jump", "--out", out.to_str().unwrap()]);
+    let (code, err) = synth(&[
+        "--gltf",
+        fox.to_str().unwrap(),
+        "--animation",
+        "Jump",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert_eq!(code, 2);
     assert_eq!(
         err,

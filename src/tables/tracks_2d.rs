@@ -64,7 +64,11 @@ pub struct Tracks2dWriter {
 impl Tracks2dWriter {
     /// Start writing `num_tracks` tracks to `path`.
     pub fn create(path: &Path, num_tracks: usize, provenance: &Provenance) -> Result<Self> {
-        Ok(Tracks2dWriter { inner: TableWriter::create::<Tracks2dTable>(path, provenance)?, num_tracks, next: 0 })
+        Ok(Tracks2dWriter {
+            inner: TableWriter::create::<Tracks2dTable>(path, provenance)?,
+            num_tracks,
+            next: 0,
+        })
     }
 
     /// Append the next frame (frames come as 0, 1, 2, ...).
@@ -92,7 +96,8 @@ impl Tracks2dReader {
     /// Open `path`; every frame must hold the same number of tracks.
     pub fn open(path: &Path) -> Result<Self> {
         let inner = TableReader::open::<Tracks2dTable>(path)?;
-        let num_tracks = if inner.num_row_groups() > 0 { inner.row_group_rows(0) as usize } else { 0 };
+        let num_tracks =
+            if inner.num_row_groups() > 0 { inner.row_group_rows(0) as usize } else { 0 };
         same_rows_per_frame(&inner, num_tracks)?;
         Ok(Tracks2dReader { inner, num_tracks })
     }
@@ -119,7 +124,10 @@ impl Tracks2dReader {
         let y = c.values::<Float32Type>("y")?;
         validate::finite(path, "x", row0, x)?;
         validate::finite(path, "y", row0, y)?;
-        Ok(Tracks2dFrame { xy: x.iter().zip(y).map(|(x, y)| [*x, *y]).collect(), visible: c.bools("visible")? })
+        Ok(Tracks2dFrame {
+            xy: x.iter().zip(y).map(|(x, y)| [*x, *y]).collect(),
+            visible: c.bools("visible")?,
+        })
     }
 }
 
@@ -150,6 +158,9 @@ mod tests {
         )
         .unwrap();
         let err = Tracks2dReader::open(&p).err().unwrap().to_string();
-        assert_eq!(err, format!("{}: frame 1: 1 rows, expected 2 (one per track, as in frame 0)", p.display()));
+        assert_eq!(
+            err,
+            format!("{}: frame 1: 1 rows, expected 2 (one per track, as in frame 0)", p.display())
+        );
     }
 }

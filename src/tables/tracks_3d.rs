@@ -33,7 +33,9 @@ impl Table for Tracks3dTable {
 /// The row group of frame `frame`: positions `[M, 3]` of tracks 0..M-1.
 pub fn frame_batch(frame: u32, positions: &[[f32; 3]]) -> RecordBatch {
     let m = positions.len();
-    let col = |k: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(positions.iter().map(|p| p[k]))) };
+    let col = |k: usize| -> ArrayRef {
+        Arc::new(Float32Array::from_iter_values(positions.iter().map(|p| p[k])))
+    };
     batch::<Tracks3dTable>(vec![
         Arc::new(UInt32Array::from(vec![frame; m])),
         Arc::new(UInt32Array::from_iter_values(0..m as u32)),
@@ -53,7 +55,11 @@ pub struct Tracks3dWriter {
 impl Tracks3dWriter {
     /// Start writing `num_tracks` tracks to `path`.
     pub fn create(path: &Path, num_tracks: usize, provenance: &Provenance) -> Result<Self> {
-        Ok(Tracks3dWriter { inner: TableWriter::create::<Tracks3dTable>(path, provenance)?, num_tracks, next: 0 })
+        Ok(Tracks3dWriter {
+            inner: TableWriter::create::<Tracks3dTable>(path, provenance)?,
+            num_tracks,
+            next: 0,
+        })
     }
 
     /// Append the next frame's positions `[M, 3]` (frames come as 0, 1, 2, ...).
@@ -80,7 +86,8 @@ impl Tracks3dReader {
     /// Open `path`; every frame must hold the same number of tracks.
     pub fn open(path: &Path) -> Result<Self> {
         let inner = TableReader::open::<Tracks3dTable>(path)?;
-        let num_tracks = if inner.num_row_groups() > 0 { inner.row_group_rows(0) as usize } else { 0 };
+        let num_tracks =
+            if inner.num_row_groups() > 0 { inner.row_group_rows(0) as usize } else { 0 };
         same_rows_per_frame(&inner, num_tracks)?;
         Ok(Tracks3dReader { inner, num_tracks })
     }
@@ -120,7 +127,10 @@ pub(crate) fn same_rows_per_frame(r: &TableReader, m: usize) -> Result<()> {
             return Err(Error::Frame {
                 path: r.path().into(),
                 frame: g as u64,
-                msg: format!("{} rows, expected {m} (one per track, as in frame 0)", r.row_group_rows(g)),
+                msg: format!(
+                    "{} rows, expected {m} (one per track, as in frame 0)",
+                    r.row_group_rows(g)
+                ),
             });
         }
     }
@@ -148,7 +158,8 @@ mod tests {
     fn round_trip_and_bad_ids() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("tracks_3d.parquet");
-        let frames = [vec![[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]], vec![[1.0, 1.0, 2.0], [3.0, 5.0, 5.0]]];
+        let frames =
+            [vec![[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]], vec![[1.0, 1.0, 2.0], [3.0, 5.0, 5.0]]];
         let mut w = Tracks3dWriter::create(&p, 2, &Provenance::default()).unwrap();
         for f in &frames {
             w.write(f).unwrap();
@@ -163,14 +174,19 @@ mod tests {
             .columns()
             .iter()
             .enumerate()
-            .map(|(i, c)| if i == 1 { Arc::new(UInt32Array::from(vec![0, 0])) as ArrayRef } else { c.clone() })
+            .map(|(i, c)| {
+                if i == 1 { Arc::new(UInt32Array::from(vec![0, 0])) as ArrayRef } else { c.clone() }
+            })
             .collect();
         b = batch::<Tracks3dTable>(cols);
         super::super::io::write_table::<Tracks3dTable>(&p, &Provenance::default(), [b]).unwrap();
         let err = Tracks3dReader::open(&p).unwrap().frame(0).unwrap_err().to_string();
         assert_eq!(
             err,
-            format!("{}: column 'track_id', row 1: id 0 where 1 was expected (ids run 0..M-1 in every frame)", p.display())
+            format!(
+                "{}: column 'track_id', row 1: id 0 where 1 was expected (ids run 0..M-1 in every frame)",
+                p.display()
+            )
         );
     }
 }

@@ -99,8 +99,9 @@ impl Channel {
                 let h10 = u3 - 2.0 * u2 + u;
                 let h01 = -2.0 * u3 + 3.0 * u2;
                 let h11 = u3 - u2;
-                let v: Vec<f32> =
-                    (0..self.width).map(|i| h00 * a[i] + h10 * dt * m0[i] + h01 * b[i] + h11 * dt * m1[i]).collect();
+                let v: Vec<f32> = (0..self.width)
+                    .map(|i| h00 * a[i] + h10 * dt * m0[i] + h01 * b[i] + h11 * dt * m1[i])
+                    .collect();
                 if prop == Property::Rotation {
                     let q = Quat::from_slice(&v);
                     let q = if q.length_squared() > 0.0 { q.normalize() } else { Quat::IDENTITY };
@@ -124,7 +125,8 @@ pub struct Pose {
 
 /// Pose `asset` at time `t` of `anim` (rest pose without an animation).
 pub fn pose(asset: &Asset, anim: Option<&Animation>, t: f32) -> Pose {
-    let mut trs: Vec<(Vec3, Quat, Vec3)> = asset.nodes.iter().map(|n| (n.translation, n.rotation, n.scale)).collect();
+    let mut trs: Vec<(Vec3, Quat, Vec3)> =
+        asset.nodes.iter().map(|n| (n.translation, n.rotation, n.scale)).collect();
     let mut weights: Vec<Vec<f32>> = asset.nodes.iter().map(|n| n.weights.clone()).collect();
     for ch in anim.map(|a| a.channels.as_slice()).unwrap_or(&[]) {
         let v = ch.sample(t);
@@ -136,7 +138,8 @@ pub fn pose(asset: &Asset, anim: Option<&Animation>, t: f32) -> Pose {
             Property::Weights => weights[n] = v,
         }
     }
-    let local: Vec<Mat4> = trs.iter().map(|&(t, r, s)| Mat4::from_scale_rotation_translation(s, r, t)).collect();
+    let local: Vec<Mat4> =
+        trs.iter().map(|&(t, r, s)| Mat4::from_scale_rotation_translation(s, r, t)).collect();
     let mut world = vec![None; local.len()];
     for i in 0..local.len() {
         resolve_world(i, &asset.parent, &local, &mut world);
@@ -180,13 +183,25 @@ pub fn frame_time(frame: u32, fps: f64, start: f32, end: f32) -> f32 {
 mod tests {
     use super::*;
 
-    fn channel(property: Property, interp: Interp, times: Vec<f32>, values: Vec<f32>, width: usize) -> Channel {
+    fn channel(
+        property: Property,
+        interp: Interp,
+        times: Vec<f32>,
+        values: Vec<f32>,
+        width: usize,
+    ) -> Channel {
         Channel { node: 0, property, interp, times, values, width }
     }
 
     #[test]
     fn linear_and_step_translation() {
-        let c = channel(Property::Translation, Interp::Linear, vec![0.0, 1.0], vec![0.0, 0.0, 0.0, 2.0, 4.0, 6.0], 3);
+        let c = channel(
+            Property::Translation,
+            Interp::Linear,
+            vec![0.0, 1.0],
+            vec![0.0, 0.0, 0.0, 2.0, 4.0, 6.0],
+            3,
+        );
         assert_eq!(c.sample(0.25), vec![0.5, 1.0, 1.5]);
         assert_eq!(c.sample(-1.0), vec![0.0, 0.0, 0.0]);
         assert_eq!(c.sample(5.0), vec![2.0, 4.0, 6.0]);

@@ -112,7 +112,8 @@ impl Asset {
         match name {
             None => Ok(self.animations.first()),
             Some(n) => self.animations.iter().find(|a| a.name == n).map(Some).ok_or_else(|| {
-                let list: Vec<String> = self.animations.iter().map(|a| format!("'{}'", a.name)).collect();
+                let list: Vec<String> =
+                    self.animations.iter().map(|a| format!("'{}'", a.name)).collect();
                 Error::UnknownAnimation {
                     path: self.path.clone(),
                     name: n.to_string(),
@@ -126,7 +127,8 @@ impl Asset {
 /// Load `path` (`.gltf` with embedded or external buffers, or `.glb`).
 pub fn load(path: &Path) -> Result<Asset, Error> {
     let malformed = |msg: String| Error::Malformed { path: path.to_path_buf(), msg };
-    let bytes = std::fs::read(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+    let bytes =
+        std::fs::read(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
     if bytes.len() >= 12 && &bytes[..4] == b"glTF" {
         let declared = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize;
         if declared > bytes.len() {
@@ -136,14 +138,19 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
             )));
         }
     }
-    let gltf::Gltf { document, blob } = gltf::Gltf::from_slice(&bytes).map_err(|e| malformed(e.to_string()))?;
+    let gltf::Gltf { document, blob } =
+        gltf::Gltf::from_slice(&bytes).map_err(|e| malformed(e.to_string()))?;
     let base = path.parent().unwrap_or(Path::new("."));
     for b in document.buffers() {
         if let gltf::buffer::Source::Uri(uri) = b.source()
             && let Some(file) = external_file(base, uri)
             && !file.is_file()
         {
-            return Err(Error::MissingFile { path: path.to_path_buf(), what: format!("buffer {}", b.index()), file });
+            return Err(Error::MissingFile {
+                path: path.to_path_buf(),
+                what: format!("buffer {}", b.index()),
+                file,
+            });
         }
     }
     for im in document.images() {
@@ -151,10 +158,15 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
             && let Some(file) = external_file(base, uri)
             && !file.is_file()
         {
-            return Err(Error::MissingFile { path: path.to_path_buf(), what: format!("texture image {}", im.index()), file });
+            return Err(Error::MissingFile {
+                path: path.to_path_buf(),
+                what: format!("texture image {}", im.index()),
+                file,
+            });
         }
     }
-    let buffers = gltf::import_buffers(&document, Some(base), blob).map_err(|e| malformed(e.to_string()))?;
+    let buffers =
+        gltf::import_buffers(&document, Some(base), blob).map_err(|e| malformed(e.to_string()))?;
     let images = gltf::import_images(&document, Some(base), &buffers)
         .map_err(|e| malformed(format!("cannot decode a texture image: {e}")))?;
     let get = |b: gltf::Buffer| buffers.get(b.index()).map(|d| &d.0[..]);
@@ -198,7 +210,10 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
                 None => vec![Mat4::IDENTITY; joints.len()],
             };
             if inverse_bind.len() < joints.len() {
-                return Err(malformed(format!("skin {}: fewer inverse bind matrices than joints", s.index())));
+                return Err(malformed(format!(
+                    "skin {}: fewer inverse bind matrices than joints",
+                    s.index()
+                )));
             }
             Ok(Skin { joints, inverse_bind })
         })
@@ -206,7 +221,10 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
 
     let animations = document
         .animations()
-        .map(|a| animation(&a, get, nodes.len()).map_err(|m| malformed(format!("animation {}: {m}", a.index()))))
+        .map(|a| {
+            animation(&a, get, nodes.len())
+                .map_err(|m| malformed(format!("animation {}: {m}", a.index())))
+        })
         .collect::<Result<Vec<_>, _>>()?;
 
     // Instanced primitives: every node of the default scene (or all root nodes) with a mesh.
@@ -232,7 +250,9 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
         let Some(m) = node.mesh() else { continue };
         let skin = node.skin().map(|s| s.index());
         for prim in m.primitives() {
-            let ctx = |msg: &str| malformed(format!("mesh {} primitive {}: {msg}", m.index(), prim.index()));
+            let ctx = |msg: &str| {
+                malformed(format!("mesh {} primitive {}: {msg}", m.index(), prim.index()))
+            };
             let reader = prim.reader(get);
             let Some(pos) = reader.read_positions() else { continue };
             let positions: Vec<Vec3> = pos.map(Vec3::from).collect();
@@ -270,7 +290,10 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
             }
             if let Some(sk) = skin {
                 let nj = skins[sk].joints.len();
-                if influences.iter().any(|(j, w)| j.iter().zip(w).any(|(j, w)| *w != 0.0 && *j as usize >= nj)) {
+                if influences
+                    .iter()
+                    .any(|(j, w)| j.iter().zip(w).any(|(j, w)| *w != 0.0 && *j as usize >= nj))
+                {
                     return Err(ctx(&format!("joint index out of range (skin has {nj} joints)")));
                 }
             }
@@ -289,7 +312,17 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
     if mesh.tris.is_empty() {
         return Err(malformed("the scene has no triangle mesh".into()));
     }
-    Ok(Asset { path: path.to_path_buf(), nodes, parent, skins, animations, textures, materials, parts, mesh })
+    Ok(Asset {
+        path: path.to_path_buf(),
+        nodes,
+        parent,
+        skins,
+        animations,
+        textures,
+        materials,
+        parts,
+        mesh,
+    })
 }
 
 /// The file an external (non-data) URI names, relative to `base`.
@@ -306,7 +339,13 @@ fn triangles(mode: Mode, idx: &[u32]) -> Vec<[u32; 3]> {
     match mode {
         Mode::Triangles => idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
         Mode::TriangleStrip => (2..idx.len())
-            .map(|i| if i % 2 == 0 { [idx[i - 2], idx[i - 1], idx[i]] } else { [idx[i - 1], idx[i - 2], idx[i]] })
+            .map(|i| {
+                if i % 2 == 0 {
+                    [idx[i - 2], idx[i - 1], idx[i]]
+                } else {
+                    [idx[i - 1], idx[i - 2], idx[i]]
+                }
+            })
             .collect(),
         Mode::TriangleFan => (2..idx.len()).map(|i| [idx[0], idx[i - 1], idx[i]]).collect(),
         _ => Vec::new(),
@@ -394,7 +433,11 @@ fn decode_texture(d: &gltf::image::Data) -> Texture {
     Texture { width: d.width as usize, height: d.height as usize, texels }
 }
 
-fn animation<'a, 's, F>(a: &gltf::Animation<'a>, get: F, num_nodes: usize) -> Result<Animation, String>
+fn animation<'a, 's, F>(
+    a: &gltf::Animation<'a>,
+    get: F,
+    num_nodes: usize,
+) -> Result<Animation, String>
 where
     F: Clone + Fn(gltf::Buffer<'a>) -> Option<&'s [u8]>,
 {
@@ -407,16 +450,18 @@ where
         }
         let reader = ch.reader(get.clone());
         let times: Vec<f32> = reader.read_inputs().ok_or("sampler without input")?.collect();
-        let (property, values, width): (Property, Vec<f32>, usize) =
-            match reader.read_outputs().ok_or("sampler without output")? {
-                ReadOutputs::Translations(it) => (Property::Translation, it.flatten().collect(), 3),
-                ReadOutputs::Scales(it) => (Property::Scale, it.flatten().collect(), 3),
-                ReadOutputs::Rotations(r) => (Property::Rotation, r.into_f32().flatten().collect(), 4),
-                ReadOutputs::MorphTargetWeights(w) => {
-                    let v: Vec<f32> = w.into_f32().collect();
-                    (Property::Weights, v, 0)
-                }
-            };
+        let (property, values, width): (Property, Vec<f32>, usize) = match reader
+            .read_outputs()
+            .ok_or("sampler without output")?
+        {
+            ReadOutputs::Translations(it) => (Property::Translation, it.flatten().collect(), 3),
+            ReadOutputs::Scales(it) => (Property::Scale, it.flatten().collect(), 3),
+            ReadOutputs::Rotations(r) => (Property::Rotation, r.into_f32().flatten().collect(), 4),
+            ReadOutputs::MorphTargetWeights(w) => {
+                let v: Vec<f32> = w.into_f32().collect();
+                (Property::Weights, v, 0)
+            }
+        };
         let interp = match ch.sampler().interpolation() {
             gltf::animation::Interpolation::Linear => Interp::Linear,
             gltf::animation::Interpolation::Step => Interp::Step,
@@ -437,7 +482,8 @@ where
         channels.push(Channel { node, property, interp, times, values, width });
     }
     let start = channels.iter().map(|c| c.times[0]).fold(f32::INFINITY, f32::min);
-    let end = channels.iter().map(|c| *c.times.last().unwrap_or(&0.0)).fold(f32::NEG_INFINITY, f32::max);
+    let end =
+        channels.iter().map(|c| *c.times.last().unwrap_or(&0.0)).fold(f32::NEG_INFINITY, f32::max);
     let name = a.name().map(str::to_string).unwrap_or_else(|| format!("animation{}", a.index()));
     Ok(Animation {
         name,

@@ -51,7 +51,14 @@ pub fn paths(camera: &str, frame: u32) -> (String, String, String) {
 }
 
 /// The orbit protocol's cameras, frame-major (`[T·C]`, camera k of frame t at `t·C + k`).
-pub fn orbit(frames: u32, cameras: u32, deg_per_frame: f64, elevation_deg: f64, width: u32, height: u32) -> Vec<Camera> {
+pub fn orbit(
+    frames: u32,
+    cameras: u32,
+    deg_per_frame: f64,
+    elevation_deg: f64,
+    width: u32,
+    height: u32,
+) -> Vec<Camera> {
     let f = orbit_focal(width, height);
     let el = elevation_deg.to_radians();
     let mut out = Vec::with_capacity((frames * cameras) as usize);
@@ -59,7 +66,8 @@ pub fn orbit(frames: u32, cameras: u32, deg_per_frame: f64, elevation_deg: f64, 
         for k in 0..cameras {
             let offset = 360.0 * k as f64 / cameras as f64;
             let az = (offset + deg_per_frame * t as f64).to_radians();
-            let eye = ORBIT_DISTANCE * DVec3::new(el.cos() * az.sin(), el.sin(), el.cos() * az.cos());
+            let eye =
+                ORBIT_DISTANCE * DVec3::new(el.cos() * az.sin(), el.sin(), el.cos() * az.cos());
             let name = format!("cam{k:02}");
             let (image_path, depth_path, mask_path) = paths(&name, t);
             out.push(Camera {
@@ -98,7 +106,8 @@ pub struct Placement {
 
 impl Placement {
     /// The identity placement of the orbit protocol.
-    pub const IDENTITY: Placement = Placement { origin: DVec3::ZERO, rotation: DMat3::IDENTITY, scale: 1.0 };
+    pub const IDENTITY: Placement =
+        Placement { origin: DVec3::ZERO, rotation: DMat3::IDENTITY, scale: 1.0 };
 
     /// The 4×4 matrix of this placement.
     pub fn matrix(&self) -> DMat4 {
@@ -134,12 +143,17 @@ pub fn place_on_path(cams: &[Camera]) -> Placement {
     }
     let z = z.normalize();
     let x = up.cross(z);
-    let dist = train.iter().map(|c| (c.center() - origin).length()).sum::<f64>() / train.len().max(1) as f64;
+    let dist = train.iter().map(|c| (c.center() - origin).length()).sum::<f64>()
+        / train.len().max(1) as f64;
     let half = train
         .first()
         .map(|c| (0.5 * c.width as f64 / c.fx).min(0.5 * c.height as f64 / c.fy))
         .unwrap_or(0.5);
-    Placement { origin, rotation: DMat3::from_cols(x, up, z), scale: FILL * dist * half.atan().sin() }
+    Placement {
+        origin,
+        rotation: DMat3::from_cols(x, up, z),
+        scale: FILL * dist * half.atan().sin(),
+    }
 }
 
 #[cfg(test)]

@@ -38,9 +38,14 @@ fn per_pixel(s: &Samples) -> Samples {
         .into_par_iter()
         .map(|i| {
             let (px, py) = (i % w, i / w);
-            let mut covered = (0..s.ss * s.ss).map(|k| s.data[(py * s.ss + k / s.ss) * s.width + px * s.ss + k % s.ss]);
+            let mut covered = (0..s.ss * s.ss)
+                .map(|k| s.data[(py * s.ss + k / s.ss) * s.width + px * s.ss + k % s.ss]);
             let n = covered.clone().filter(Sample::covered).count();
-            if 2 * n > s.ss * s.ss { covered.find(Sample::covered).unwrap_or(Sample::EMPTY) } else { Sample::EMPTY }
+            if 2 * n > s.ss * s.ss {
+                covered.find(Sample::covered).unwrap_or(Sample::EMPTY)
+            } else {
+                Sample::EMPTY
+            }
         })
         .collect();
     Samples { ss: 1, width: w, height: h, data }
@@ -49,7 +54,11 @@ fn per_pixel(s: &Samples) -> Samples {
 impl Covis {
     /// Collector for a training video of `num_train` frames.
     pub fn new(num_train: usize) -> Self {
-        Covis { stride: num_train.div_ceil(MAX_TESTED_FRAMES).max(1), num_train, tested: Vec::new() }
+        Covis {
+            stride: num_train.div_ceil(MAX_TESTED_FRAMES).max(1),
+            num_train,
+            tested: Vec::new(),
+        }
     }
 
     /// Whether training frame `frame` is tested.
@@ -105,7 +114,15 @@ mod tests {
         let mut c = Covis::new(240);
         assert_eq!(c.stride, 10);
         assert!(c.wants(20) && !c.wants(21));
-        let v = View { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0, width: 1, height: 1, w2c: glam::Mat4::IDENTITY };
+        let v = View {
+            fx: 1.0,
+            fy: 1.0,
+            cx: 0.0,
+            cy: 0.0,
+            width: 1,
+            height: 1,
+            w2c: glam::Mat4::IDENTITY,
+        };
         let s = Samples { ss: 1, width: 1, height: 1, data: vec![Sample::EMPTY] };
         for _ in 0..24 {
             c.keep(v, Vec::new(), &s);

@@ -40,7 +40,9 @@ use crate::tables::tracks_3d::Tracks3dWriter;
 use crate::tables::{self, Provenance};
 
 /// Output layouts of `synth`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Layout {
     /// The scene directory only.
@@ -276,7 +278,10 @@ fn check(p: &SynthParams) -> Result<(), Error> {
         return param("fps", "must be positive");
     }
     if !(p.elevation_deg.abs() < 90.0) || !p.deg_per_frame.is_finite() {
-        return param("elevation-deg", "elevation must be inside (-90, 90) and the rotation finite");
+        return param(
+            "elevation-deg",
+            "elevation must be inside (-90, 90) and the rotation finite",
+        );
     }
     if p.gaussians == 0 {
         return param("gaussians", "must be at least 1");
@@ -288,7 +293,14 @@ fn check(p: &SynthParams) -> Result<(), Error> {
 fn protocol_cameras(p: &SynthParams) -> Result<(Vec<Camera>, bool), Error> {
     match &p.trajectory {
         None => Ok((
-            cameras::orbit(p.frames, p.cameras, p.deg_per_frame, p.elevation_deg, p.width, p.height),
+            cameras::orbit(
+                p.frames,
+                p.cameras,
+                p.deg_per_frame,
+                p.elevation_deg,
+                p.width,
+                p.height,
+            ),
             false,
         )),
         Some(t) => {
@@ -313,16 +325,30 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     let asset = asset::load(&p.gltf)?;
     let anim = asset.animation(p.animation.as_deref())?;
     if anim.is_none() {
-        ctx.warn(format!("{}: the file has no animation; rendering a static scene", p.gltf.display()));
+        ctx.warn(format!(
+            "{}: the file has no animation; rendering a static scene",
+            p.gltf.display()
+        ));
     }
     if asset.parts.iter().all(|x| x.skin.is_none()) {
-        ctx.warn(format!("{}: no skinned mesh; only node and morph animation moves the model", p.gltf.display()));
+        ctx.warn(format!(
+            "{}: no skinned mesh; only node and morph animation moves the model",
+            p.gltf.display()
+        ));
     }
     let shader = shade::Shader::new(&asset, p.texture);
     let (mut cams, on_path) = protocol_cameras(p)?;
-    let num_train = cams.iter().filter(|c| c.split == Split::Train).map(|c| c.frame as usize + 1).max().unwrap_or(0);
+    let num_train = cams
+        .iter()
+        .filter(|c| c.split == Split::Train)
+        .map(|c| c.frame as usize + 1)
+        .max()
+        .unwrap_or(0);
     if num_train == 0 {
-        return Err(Error::Param { flag: "trajectory", msg: "the camera path has no training camera".into() });
+        return Err(Error::Param {
+            flag: "trajectory",
+            msg: "the camera path has no training camera".into(),
+        });
     }
     let last_frame = cams.iter().map(|c| c.frame).max().unwrap_or(0);
     let times: Vec<f32> = (0..=last_frame)
@@ -342,12 +368,18 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     bar.finish_and_clear();
     let diag = (hi - lo).length();
     if !(diag > 0.0 && diag.is_finite()) {
-        return Err(Error::Degenerate { path: p.gltf.clone(), msg: format!("bounding box diagonal {diag}") });
+        return Err(Error::Degenerate {
+            path: p.gltf.clone(),
+            msg: format!("bounding box diagonal {diag}"),
+        });
     }
     let centre = (lo + hi) / 2.0;
     let norm_scale = 2.0 / diag;
-    let placement = if on_path { cameras::place_on_path(&cams) } else { cameras::Placement::IDENTITY };
-    let to_world = placement.matrix().as_mat4() * Mat4::from_scale(Vec3::splat(norm_scale)) * Mat4::from_translation(-centre);
+    let placement =
+        if on_path { cameras::place_on_path(&cams) } else { cameras::Placement::IDENTITY };
+    let to_world = placement.matrix().as_mat4()
+        * Mat4::from_scale(Vec3::splat(norm_scale))
+        * Mat4::from_translation(-centre);
     let posed = |t: usize| -> Vec<Vec3> {
         let v = skin::pose_vertices(&asset, &anim::pose(&asset, anim, times[t]));
         v.into_iter().map(|p| to_world.transform_point3(p)).collect()
@@ -356,11 +388,19 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
 
     // Surface samples on frame 0.
     let pos0 = posed(0);
-    let gauss_pts = surface::sample_surface(&pos0, tris, p.gaussians as usize, &mut surface::Rng::new(p.seed));
-    let track_pts =
-        surface::sample_surface(&pos0, tris, p.tracks as usize, &mut surface::Rng::new(surface::splitmix64(!p.seed)));
+    let gauss_pts =
+        surface::sample_surface(&pos0, tris, p.gaussians as usize, &mut surface::Rng::new(p.seed));
+    let track_pts = surface::sample_surface(
+        &pos0,
+        tris,
+        p.tracks as usize,
+        &mut surface::Rng::new(surface::splitmix64(!p.seed)),
+    );
     if gauss_pts.is_empty() {
-        return Err(Error::Degenerate { path: p.gltf.clone(), msg: "the surface has zero area at frame 0".into() });
+        return Err(Error::Degenerate {
+            path: p.gltf.clone(),
+            msg: "the surface has zero area at frame 0".into(),
+        });
     }
     let spacing = (surface::total_area(&pos0, tris) / p.gaussians as f64).sqrt() as f32;
     let n = gauss_pts.len();
@@ -379,18 +419,27 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
 
     // Pass 2: oracle model and tracks_3d.
     let prov = Provenance::new("synth", p);
-    std::fs::create_dir_all(&p.out).map_err(|source| image_io::Error::Io { path: p.out.clone(), source })?;
+    std::fs::create_dir_all(&p.out)
+        .map_err(|source| image_io::Error::Io { path: p.out.clone(), source })?;
     let mut t3 = Tracks3dWriter::create(&p.out.join("tracks_3d.parquet"), track_pts.len(), &prov)?;
     let bar = ctx.progress(num_train as u64, "oracle");
     let frames = (0..num_train).map(|t| -> tables::Result<FrameState> {
         let pos = posed(t);
-        let tp: Vec<[f32; 3]> = track_pts.iter().map(|s| surface::position(&pos, tris, s).to_array()).collect();
+        let tp: Vec<[f32; 3]> =
+            track_pts.iter().map(|s| surface::position(&pos, tris, s).to_array()).collect();
         t3.write(&tp)?;
         bar.inc(1);
         Ok(FrameState {
             frame: t as u32,
-            position: gauss_pts.iter().map(|s| surface::position(&pos, tris, s).to_array()).collect(),
-            rotation: gauss_pts.iter().map(|s| surface::frame(&pos, tris, s).to_array()).map(|[x, y, z, w]| [w, x, y, z]).collect(),
+            position: gauss_pts
+                .iter()
+                .map(|s| surface::position(&pos, tris, s).to_array())
+                .collect(),
+            rotation: gauss_pts
+                .iter()
+                .map(|s| surface::frame(&pos, tris, s).to_array())
+                .map(|[x, y, z, w]| [w, x, y, z])
+                .collect(),
         })
     });
     Model::save(&p.out.join("oracle"), &gaussians, frames, &prov)?;
@@ -424,11 +473,17 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
                 let r = raster::resolve(&samples, &shade_fn);
                 write_png(&p.out.join(&cam.image_path), &r.rgba)?;
                 write_npy_f32(&p.out.join(depth_rel(cam)), &[view.height, view.width], &r.depth)?;
-                write_png(&p.out.join(format!("mask/{}/{:05}.png", cam.camera, cam.frame)), &r.mask)?;
+                write_png(
+                    &p.out.join(format!("mask/{}/{:05}.png", cam.camera, cam.frame)),
+                    &r.mask,
+                )?;
                 if let Some(c) = &covis
                     && eval
                 {
-                    write_png(&p.out.join(cam.mask_path.as_deref().unwrap_or_default()), &c.mask(&samples, tris))?;
+                    write_png(
+                        &p.out.join(cam.mask_path.as_deref().unwrap_or_default()),
+                        &c.mask(&samples, tris),
+                    )?;
                 }
                 bar.inc(1);
                 if eval {
@@ -436,9 +491,14 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
                 }
                 let mut f = Tracks2dFrame::default();
                 for s in &track_pts {
-                    let (q, vis) = raster::visibility(&view, &samples, surface::position(&pos, tris, s), s.tri)
-                        .map(|(q, v)| ([q.x, q.y], v))
-                        .unwrap_or(([-1.0, -1.0], false));
+                    let (q, vis) = raster::visibility(
+                        &view,
+                        &samples,
+                        surface::position(&pos, tris, s),
+                        s.tri,
+                    )
+                    .map(|(q, v)| ([q.x, q.y], v))
+                    .unwrap_or(([-1.0, -1.0], false));
                     f.xy.push(q);
                     f.visible.push(vis);
                 }
@@ -449,7 +509,9 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
             if frame != next_train {
                 return Err(Error::Param {
                     flag: "trajectory",
-                    msg: format!("training frame {frame} is not the next frame ({next_train}): one training camera per frame"),
+                    msg: format!(
+                        "training frame {frame} is not the next frame ({next_train}): one training camera per frame"
+                    ),
                 });
             }
             t2.write(&f)?;

@@ -58,7 +58,8 @@ impl View {
     /// Pixel coordinates and z-depth of world point `p`; `None` behind [`NEAR`].
     pub fn project(&self, p: Vec3) -> Option<(Vec2, f32)> {
         let c = self.w2c.transform_point3(p);
-        (c.z >= NEAR).then(|| (Vec2::new(self.fx * c.x / c.z + self.cx, self.fy * c.y / c.z + self.cy), c.z))
+        (c.z >= NEAR)
+            .then(|| (Vec2::new(self.fx * c.x / c.z + self.cx, self.fy * c.y / c.z + self.cy), c.z))
     }
 }
 
@@ -116,7 +117,8 @@ fn edge(a: Vec2, b: Vec2, p: Vec2) -> f32 {
 pub fn rasterize(view: &View, ss: usize, pos: &[Vec3], tris: &[[u32; 3]]) -> Samples {
     let (sw, sh) = (view.width * ss, view.height * ss);
     let s = ss as f32;
-    let proj: Vec<Option<(Vec2, f32)>> = pos.par_iter().map(|p| view.project(*p).map(|(q, z)| (q * s, z))).collect();
+    let proj: Vec<Option<(Vec2, f32)>> =
+        pos.par_iter().map(|p| view.project(*p).map(|(q, z)| (q * s, z))).collect();
     let prepared: Vec<Prepared> = tris
         .iter()
         .enumerate()
@@ -132,7 +134,14 @@ pub fn rasterize(view: &View, ss: usize, pos: &[Vec3], tris: &[[u32; 3]]) -> Sam
             if hi.x < 0.0 || hi.y < 0.0 || lo.x > sw as f32 || lo.y > sh as f32 {
                 return None;
             }
-            Some(Prepared { tri: i as u32, v, inv_z: [1.0 / a.1, 1.0 / b.1, 1.0 / c.1], inv_area: 1.0 / area, lo, hi })
+            Some(Prepared {
+                tri: i as u32,
+                v,
+                inv_z: [1.0 / a.1, 1.0 / b.1, 1.0 / c.1],
+                inv_area: 1.0 / area,
+                lo,
+                hi,
+            })
         })
         .collect();
     let mut data = vec![Sample::EMPTY; sw * sh];
@@ -236,7 +245,10 @@ pub fn visibility(view: &View, s: &Samples, p: Vec3, tri: u32) -> Option<(Vec2, 
         return Some((q, false));
     }
     let (sx, sy) = ((q.x * s.ss as f32) as isize, (q.y * s.ss as f32) as isize);
-    let at = |x: isize, y: isize| s.data[y.clamp(0, s.height as isize - 1) as usize * s.width + x.clamp(0, s.width as isize - 1) as usize];
+    let at = |x: isize, y: isize| {
+        s.data[y.clamp(0, s.height as isize - 1) as usize * s.width
+            + x.clamp(0, s.width as isize - 1) as usize]
+    };
     let mut vis = z <= at(sx, sy).z * (1.0 + VIS_TOL);
     for dy in -1..=1 {
         for dx in -1..=1 {
@@ -256,7 +268,15 @@ mod tests {
     use super::*;
 
     fn view(n: usize) -> View {
-        View { fx: n as f32, fy: n as f32, cx: n as f32 / 2.0, cy: n as f32 / 2.0, width: n, height: n, w2c: Mat4::IDENTITY }
+        View {
+            fx: n as f32,
+            fy: n as f32,
+            cx: n as f32 / 2.0,
+            cy: n as f32 / 2.0,
+            width: n,
+            height: n,
+            w2c: Mat4::IDENTITY,
+        }
     }
 
     #[test]
@@ -291,7 +311,8 @@ mod tests {
         // A slanted triangle: vertices at depths 1, 3 and 3. Barycentrics of the sample
         // nearest a known 3D point must match the point's 3D barycentrics, not screen ones.
         let v = view(64);
-        let pos = [Vec3::new(-0.5, -0.5, 1.0), Vec3::new(1.5, -1.5, 3.0), Vec3::new(-1.5, 1.5, 3.0)];
+        let pos =
+            [Vec3::new(-0.5, -0.5, 1.0), Vec3::new(1.5, -1.5, 3.0), Vec3::new(-1.5, 1.5, 3.0)];
         let s = rasterize(&v, 1, &pos, &[[0, 1, 2]]);
         let b = [0.5f32, 0.25, 0.25];
         let p = pos[0] * b[0] + pos[1] * b[1] + pos[2] * b[2];
@@ -309,14 +330,19 @@ mod tests {
     #[test]
     fn visibility_by_depth_test() {
         let v = view(32);
-        let front = [Vec3::new(-0.25, -0.25, 1.0), Vec3::new(0.25, -0.25, 1.0), Vec3::new(0.0, 0.25, 1.0)];
-        let back = [Vec3::new(-6.0, -6.0, 3.0), Vec3::new(6.0, -6.0, 3.0), Vec3::new(0.0, 6.0, 3.0)];
+        let front =
+            [Vec3::new(-0.25, -0.25, 1.0), Vec3::new(0.25, -0.25, 1.0), Vec3::new(0.0, 0.25, 1.0)];
+        let back =
+            [Vec3::new(-6.0, -6.0, 3.0), Vec3::new(6.0, -6.0, 3.0), Vec3::new(0.0, 6.0, 3.0)];
         let pos: Vec<Vec3> = front.iter().chain(&back).copied().collect();
         let s = rasterize(&v, 2, &pos, &[[0, 1, 2], [3, 4, 5]]);
         // Behind the front triangle the back one is hidden; beside it, it is visible.
         assert_eq!(visibility(&v, &s, Vec3::new(0.0, -0.3, 3.0), 1).map(|x| x.1), Some(false));
         assert_eq!(visibility(&v, &s, Vec3::new(1.2, 1.2, 3.0), 1).map(|x| x.1), Some(true));
-        assert_eq!(visibility(&v, &s, (front[0] + front[1] + front[2]) / 3.0, 0).map(|x| x.1), Some(true));
+        assert_eq!(
+            visibility(&v, &s, (front[0] + front[1] + front[2]) / 3.0, 0).map(|x| x.1),
+            Some(true)
+        );
         assert_eq!(visibility(&v, &s, Vec3::new(0.0, 0.0, -1.0), 0), None);
     }
 }

@@ -53,7 +53,9 @@ impl Default for Material {
 }
 
 /// Which surfaces get the procedural texture.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum TextureMode {
     /// Procedural texture on materials without a base colour texture.
@@ -131,7 +133,9 @@ impl<'a> Shader<'a> {
             .parts
             .iter()
             .map(|p| {
-                let textured = asset.materials[p.material].texture.is_some_and(|(i, _)| i < asset.textures.len());
+                let textured = asset.materials[p.material]
+                    .texture
+                    .is_some_and(|(i, _)| i < asset.textures.len());
                 match mode {
                     TextureMode::Auto => !textured,
                     TextureMode::Procedural => true,
@@ -139,7 +143,11 @@ impl<'a> Shader<'a> {
                 }
             })
             .collect();
-        let (lo, hi) = asset.mesh.rest.iter().fold((Vec3::MAX, Vec3::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+        let (lo, hi) = asset
+            .mesh
+            .rest
+            .iter()
+            .fold((Vec3::MAX, Vec3::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
         let diag = (hi - lo).length();
         Shader { asset, procedural, cell: if diag > 0.0 { diag / 16.0 } else { 1.0 } }
     }
@@ -190,16 +198,16 @@ mod tests {
             let v = k as f32 / 255.0;
             assert!((linear_to_srgb(srgb_to_linear(v)) - v).abs() < 0.2 / 255.0, "{k}");
         }
-        let tex = Texture {
-            width: 2,
-            height: 1,
-            texels: vec![Vec4::ZERO, Vec4::ONE],
-        };
+        let tex = Texture { width: 2, height: 1, texels: vec![Vec4::ZERO, Vec4::ONE] };
         // Halfway between the two texel centres.
-        assert!(tex.sample(Vec2::new(0.5, 0.5), [Wrap::Clamp; 2]).abs_diff_eq(Vec4::splat(0.5), 1e-6));
+        assert!(
+            tex.sample(Vec2::new(0.5, 0.5), [Wrap::Clamp; 2]).abs_diff_eq(Vec4::splat(0.5), 1e-6)
+        );
         // At u = 0 clamping holds texel 0; repeating blends with texel 1 across the seam.
         assert_eq!(tex.sample(Vec2::new(0.0, 0.5), [Wrap::Clamp; 2]), Vec4::ZERO);
-        assert!(tex.sample(Vec2::new(0.0, 0.5), [Wrap::Repeat; 2]).abs_diff_eq(Vec4::splat(0.5), 1e-6));
+        assert!(
+            tex.sample(Vec2::new(0.0, 0.5), [Wrap::Repeat; 2]).abs_diff_eq(Vec4::splat(0.5), 1e-6)
+        );
         assert_eq!(wrap_coord(-1, 4, Wrap::Mirror), 0);
         assert_eq!(wrap_coord(5, 4, Wrap::Mirror), 2);
         assert_eq!(wrap_coord(5, 4, Wrap::Repeat), 1);

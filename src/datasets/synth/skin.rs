@@ -46,7 +46,12 @@ fn pose_part(asset: &Asset, pose: &Pose, part: &Part, dst: &mut [Vec3]) {
 
 /// Linear blend skinning of one point; weights are renormalised, and a vertex without any
 /// weight falls back to the node transform `fallback`.
-pub fn skin_point(joints: &[Mat4], (idx, w): &([u16; 8], [f32; 8]), p: Vec3, fallback: Mat4) -> Vec3 {
+pub fn skin_point(
+    joints: &[Mat4],
+    (idx, w): &([u16; 8], [f32; 8]),
+    p: Vec3,
+    fallback: Mat4,
+) -> Vec3 {
     let mut acc = Vec3::ZERO;
     let mut total = 0.0;
     for k in 0..8 {
@@ -72,12 +77,21 @@ mod tests {
         let joints = [Mat4::IDENTITY, world1 * bind1.inverse()];
         let p = Vec3::new(2.0, 0.0, 0.0);
         let only1 = ([1, 0, 0, 0, 0, 0, 0, 0], [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert!(skin_point(&joints, &only1, p, Mat4::IDENTITY).abs_diff_eq(Vec3::new(1.0, 1.0, 0.0), 1e-6));
+        assert!(
+            skin_point(&joints, &only1, p, Mat4::IDENTITY)
+                .abs_diff_eq(Vec3::new(1.0, 1.0, 0.0), 1e-6)
+        );
         let half = ([0, 1, 0, 0, 0, 0, 0, 0], [0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert!(skin_point(&joints, &half, p, Mat4::IDENTITY).abs_diff_eq(Vec3::new(1.5, 0.5, 0.0), 1e-6));
+        assert!(
+            skin_point(&joints, &half, p, Mat4::IDENTITY)
+                .abs_diff_eq(Vec3::new(1.5, 0.5, 0.0), 1e-6)
+        );
         // Unnormalised weights are renormalised; no weight falls back to the node matrix.
         let double = ([0, 1, 0, 0, 0, 0, 0, 0], [1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert!(skin_point(&joints, &double, p, Mat4::IDENTITY).abs_diff_eq(Vec3::new(1.5, 0.5, 0.0), 1e-6));
+        assert!(
+            skin_point(&joints, &double, p, Mat4::IDENTITY)
+                .abs_diff_eq(Vec3::new(1.5, 0.5, 0.0), 1e-6)
+        );
         let none = ([0; 8], [0.0; 8]);
         let t = Mat4::from_translation(Vec3::Y);
         assert_eq!(skin_point(&joints, &none, p, t), Vec3::new(2.0, 1.0, 0.0));

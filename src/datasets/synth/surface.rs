@@ -57,7 +57,12 @@ pub fn total_area(pos: &[Vec3], tris: &[[u32; 3]]) -> f64 {
 }
 
 /// `n` points uniform by area over the surface, drawn from `rng` (empty for zero area).
-pub fn sample_surface(pos: &[Vec3], tris: &[[u32; 3]], n: usize, rng: &mut Rng) -> Vec<SurfacePoint> {
+pub fn sample_surface(
+    pos: &[Vec3],
+    tris: &[[u32; 3]],
+    n: usize,
+    rng: &mut Rng,
+) -> Vec<SurfacePoint> {
     let mut cdf = Vec::with_capacity(tris.len());
     let mut acc = 0.0;
     for t in tris {
@@ -107,12 +112,23 @@ mod tests {
     #[test]
     fn area_uniform_and_frames() {
         // Two triangles, the second with three times the area.
-        let pos = [Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::new(3.0, 0.0, 0.0), Vec3::new(3.0, 0.0, 0.0) + Vec3::X * 3.0, Vec3::new(3.0, 1.0, 0.0)];
+        let pos = [
+            Vec3::ZERO,
+            Vec3::X,
+            Vec3::Y,
+            Vec3::new(3.0, 0.0, 0.0),
+            Vec3::new(3.0, 0.0, 0.0) + Vec3::X * 3.0,
+            Vec3::new(3.0, 1.0, 0.0),
+        ];
         let tris = [[0, 1, 2], [3, 4, 5]];
         let s = sample_surface(&pos, &tris, 4000, &mut Rng::new(7));
         let second = s.iter().filter(|p| p.tri == 1).count();
         assert!((second as f64 / 4000.0 - 0.75).abs() < 0.03, "{second}");
-        assert!(s.iter().all(|p| p.b.iter().all(|&x| x >= 0.0) && (p.b.iter().sum::<f32>() - 1.0).abs() < 1e-5));
+        assert!(
+            s.iter()
+                .all(|p| p.b.iter().all(|&x| x >= 0.0)
+                    && (p.b.iter().sum::<f32>() - 1.0).abs() < 1e-5)
+        );
         assert_eq!(s, sample_surface(&pos, &tris, 4000, &mut Rng::new(7)));
         let q = frame(&pos, &tris, &s[0]);
         assert!((q * Vec3::Z).abs_diff_eq(Vec3::Z, 1e-6));
