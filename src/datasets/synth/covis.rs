@@ -110,6 +110,35 @@ mod tests {
     use super::*;
 
     #[test]
+    fn mask_marks_points_hidden_in_training() {
+        // Training camera at the origin looking down +z: a small front triangle at z = 1
+        // hides the centre of a large back triangle at z = 3. The eval camera looks back
+        // from z = 4 and sees only the back triangle.
+        let pos = vec![
+            Vec3::new(-0.25, -0.25, 1.0),
+            Vec3::new(0.25, -0.25, 1.0),
+            Vec3::new(0.0, 0.25, 1.0),
+            Vec3::new(-6.0, -6.0, 3.0),
+            Vec3::new(6.0, -6.0, 3.0),
+            Vec3::new(0.0, 6.0, 3.0),
+        ];
+        let tris = [[0, 1, 2], [3, 4, 5]];
+        let view =
+            |w2c| View { fx: 32.0, fy: 32.0, cx: 16.0, cy: 16.0, width: 32, height: 32, w2c };
+        let train = view(glam::Mat4::IDENTITY);
+        let back = glam::Mat4::from_scale(Vec3::new(-1.0, 1.0, -1.0))
+            * glam::Mat4::from_translation(Vec3::new(0.0, 0.0, -4.0));
+        let eval = view(back);
+        let mut c = Covis::new(1);
+        c.keep(train, pos.clone(), &raster::rasterize(&train, 2, &pos, &tris));
+        let m = c.mask(&raster::rasterize(&eval, 2, &pos, &tris), &tris);
+        // Centre: hidden behind the front triangle in training. Corner (0.4, 0.4) in the
+        // eval view is world (-0.4, 0.4, 3), beside the front triangle: seen in training.
+        assert_eq!(m.at(16, 16, 0), 0.0);
+        assert_eq!(m.at(28, 28, 0), 1.0);
+    }
+
+    #[test]
     fn threshold_scales_with_tested_frames() {
         let mut c = Covis::new(240);
         assert_eq!(c.stride, 10);
