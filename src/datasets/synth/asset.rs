@@ -476,7 +476,7 @@ where
                 times.len()
             ));
         }
-        if times.windows(2).any(|w| !(w[1] > w[0])) || times.iter().any(|t| !t.is_finite()) {
+        if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] <= w[0]) {
             return Err(format!("channel on node {node}: input times are not strictly increasing"));
         }
         channels.push(Channel { node, property, interp, times, values, width });

@@ -63,7 +63,7 @@ impl Covis {
 
     /// Whether training frame `frame` is tested.
     pub fn wants(&self, frame: u32) -> bool {
-        frame as usize % self.stride == 0
+        (frame as usize).is_multiple_of(self.stride)
     }
 
     /// Keep training frame's view, world vertex positions `[V]` and z-buffer.

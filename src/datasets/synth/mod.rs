@@ -277,7 +277,7 @@ fn check(p: &SynthParams) -> Result<(), Error> {
     if !(p.fps > 0.0 && p.fps.is_finite()) {
         return param("fps", "must be positive");
     }
-    if !(p.elevation_deg.abs() < 90.0) || !p.deg_per_frame.is_finite() {
+    if p.elevation_deg.is_nan() || p.elevation_deg.abs() >= 90.0 || !p.deg_per_frame.is_finite() {
         return param(
             "elevation-deg",
             "elevation must be inside (-90, 90) and the rotation finite",

@@ -126,7 +126,7 @@ pub fn rasterize(view: &View, ss: usize, pos: &[Vec3], tris: &[[u32; 3]]) -> Sam
             let [a, b, c] = [proj[t[0] as usize]?, proj[t[1] as usize]?, proj[t[2] as usize]?];
             let v = [a.0, b.0, c.0];
             let area = edge(v[0], v[1], v[2]);
-            if !(area.abs() > 1e-12) || !area.is_finite() {
+            if area.abs() <= 1e-12 || !area.is_finite() {
                 return None;
             }
             let lo = v[0].min(v[1]).min(v[2]);

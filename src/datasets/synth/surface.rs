@@ -69,7 +69,7 @@ pub fn sample_surface(
         acc += tri_area(pos, t);
         cdf.push(acc);
     }
-    if !(acc > 0.0) {
+    if acc.is_nan() || acc <= 0.0 {
         return Vec::new();
     }
     (0..n)
@@ -96,7 +96,7 @@ pub fn frame(pos: &[Vec3], tris: &[[u32; 3]], s: &SurfacePoint) -> Quat {
     let [a, b, c] = tris[s.tri as usize].map(|i| pos[i as usize]);
     let n = (b - a).cross(c - a);
     let e = b - a;
-    if !(n.length_squared() > 0.0) || !(e.length_squared() > 0.0) {
+    if !n.is_finite() || n.length_squared() <= 0.0 || e.length_squared() <= 0.0 {
         return Quat::IDENTITY;
     }
     let n = n.normalize();
