@@ -266,3 +266,49 @@ fn missing_texture_names_the_file() {
         )
     );
 }
+
+/// All files of a directory tree, relative path → bytes, sorted.
+fn tree(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn same_bytes_whatever_the_thread_count() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fox = fox();
+    // The same output path both times: the tables' provenance records the parameters.
+    let out = tmp.path().join("out");
+    let run = |threads: &str| {
+        let mut args = vec![
+            "--threads",
+            threads,
+            "--gltf",
+            fox.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend(TINY);
+        assert_eq!(synth(&args).0, 0);
+        let files = tree(&out);
+        std::fs::remove_dir_all(&out).unwrap();
+        files
+    };
+    let (one, three) = (run("1"), run("3"));
+    assert_eq!(one.len(), three.len());
+    for (a, b) in one.iter().zip(&three) {
+        assert!(a == b, "{} differs", a.0.display());
+    }
+}
