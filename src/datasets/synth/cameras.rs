@@ -14,7 +14,8 @@
 //! object is placed at the point closest (least squares) to all training optical axes, its
 //! +Y along the cameras' mean up direction and its +Z facing the first training camera, and
 //! scaled so its bounding sphere fills [`FILL`] of the smaller half-size at the mean
-//! training distance.
+//! training distance. The path's lens distortion is dropped (the renderer is a pinhole), and
+//! every camera of the path is rendered at its own frame's animation time.
 
 use glam::{DMat3, DMat4, DVec3};
 
