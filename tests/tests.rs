@@ -7,3 +7,4 @@ mod bad_inputs;
 mod dycheck;
 mod inspect;
 mod interop;
+mod synth;

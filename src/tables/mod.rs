@@ -124,5 +124,7 @@ pub fn registry() -> Vec<TableKind> {
         entry::<cameras::CamerasTable>(),
         entry::<gaussians::GaussiansTable>(),
         entry::<trajectories::TrajectoriesTable>(),
+        entry::<tracks_2d::Tracks2dTable>(),
+        entry::<tracks_3d::Tracks3dTable>(),
     ]
 }
