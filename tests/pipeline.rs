@@ -13,9 +13,12 @@ const BIN: &str = env!("CARGO_BIN_EXE_usplat4d");
 
 fn shared_gltf() -> Option<PathBuf> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    [root.join("../../shared/data/gltf/SimpleSkin.gltf"), root.join("../shared/data/gltf/SimpleSkin.gltf")]
-        .into_iter()
-        .find(|p| p.is_file())
+    [
+        root.join("../../shared/data/gltf/SimpleSkin.gltf"),
+        root.join("../shared/data/gltf/SimpleSkin.gltf"),
+    ]
+    .into_iter()
+    .find(|p| p.is_file())
 }
 
 /// A temp dir holding `p.yaml` (and a copy of the glTF model when asked).
@@ -55,14 +58,26 @@ impl Dir {
             .current_dir(std::env::temp_dir())
             .output()
             .unwrap();
-        (out.status.success(), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stdout).into(),
+            String::from_utf8_lossy(&out.stderr).into(),
+        )
     }
 
-    /// `pipeline run` that must succeed; returns its stdout lines.
+    /// `pipeline run` that must succeed; returns the runner's stdout lines (one per stage and
+    /// the summary), without what stages themselves print (`inspect` prints its report).
     fn run(&self, extra: &[&str]) -> Vec<String> {
         let (ok, stdout, stderr) = self.pipeline("run", extra);
         assert!(ok, "pipeline run failed:\n{stdout}\n{stderr}");
-        stdout.lines().map(String::from).collect()
+        stdout
+            .lines()
+            .filter(|l| {
+                ["run  ", "skip ", "restore ", "all "].iter().any(|p| l.starts_with(p))
+                    || l.contains(" stages: ")
+            })
+            .map(String::from)
+            .collect()
     }
 
     /// The stderr of a failing command.
@@ -73,7 +88,8 @@ impl Dir {
     }
 }
 
-const SYNTH: &str = "synth --gltf model.gltf --cameras 2 --width 32 --height 32 --gaussians 200 --tracks 16";
+const SYNTH: &str =
+    "synth --gltf model.gltf --cameras 2 --width 32 --height 32 --gaussians 200 --tracks 16";
 
 /// Two independent branches: synth → inspect, twice, with one frame-count parameter each.
 fn two_branches() -> String {
@@ -104,7 +120,10 @@ fn second_run_of_an_unchanged_pipeline_runs_nothing() {
     );
     let (ok, status, _) = d.pipeline("status", &[]);
     assert!(ok);
-    assert_eq!(status, "synth_a: up to date\nsynth_b: up to date\ninspect@a: up to date\ninspect@b: up to date\n");
+    assert_eq!(
+        status,
+        "synth_a: up to date\nsynth_b: up to date\ninspect@a: up to date\ninspect@b: up to date\n"
+    );
 }
 
 // Needs `synth` and `inspect`.
@@ -183,7 +202,10 @@ fn a_run_killed_mid_stage_redoes_that_stage_and_keeps_finished_ones() {
         }
     }
     let status = child.wait().unwrap();
-    assert!(!status.success(), "the run finished before it could be killed (make `slow` slower): {seen:?}");
+    assert!(
+        !status.success(),
+        "the run finished before it could be killed (make `slow` slower): {seen:?}"
+    );
     assert_eq!(seen[0], "run  fast (never run)");
     let lines = d.run(&[]);
     assert_eq!(lines[0], "skip fast (up to date)");
@@ -197,7 +219,10 @@ fn malformed_yaml_is_reported_with_line_and_column() {
     let file = d.path("p.yaml");
     assert_eq!(
         d.error("run"),
-        format!("error: {}: mismatched bracket '[' closed by '}}' at line 2, column 29", file.display())
+        format!(
+            "error: {}: mismatched bracket '[' closed by '}}' at line 2, column 29",
+            file.display()
+        )
     );
 }
 
@@ -219,12 +244,17 @@ fn a_cycle_names_its_stages() {
     let d = Dir::new(
         "stages:\n  a: {cmd: inspect c, deps: [c], outs: [a]}\n  b: {cmd: inspect a, deps: [a], outs: [b]}\n  c: {cmd: inspect b, deps: [b], outs: [c]}\n",
     );
-    assert_eq!(d.error("dag"), format!("error: {}: dependency cycle: a -> b -> c -> a", d.path("p.yaml").display()));
+    assert_eq!(
+        d.error("dag"),
+        format!("error: {}: dependency cycle: a -> b -> c -> a", d.path("p.yaml").display())
+    );
 }
 
 #[test]
 fn a_missing_dep_names_stage_and_path() {
-    let d = Dir::new("params: {scene: s1}\nstages:\n  a: {cmd: 'inspect ${scene}/x.parquet', deps: ['${scene}/x.parquet']}\n");
+    let d = Dir::new(
+        "params: {scene: s1}\nstages:\n  a: {cmd: 'inspect ${scene}/x.parquet', deps: ['${scene}/x.parquet']}\n",
+    );
     assert_eq!(
         d.error("status"),
         format!(
@@ -237,9 +267,15 @@ fn a_missing_dep_names_stage_and_path() {
 #[test]
 fn an_unknown_param_and_a_failing_stage_are_named() {
     let d = Dir::new("stages:\n  a: {cmd: 'inspect ${nope}'}\n");
-    assert_eq!(d.error("run"), format!("error: {}: stage `a`: unknown parameter `${{nope}}`", d.path("p.yaml").display()));
+    assert_eq!(
+        d.error("run"),
+        format!("error: {}: stage `a`: unknown parameter `${{nope}}`", d.path("p.yaml").display())
+    );
     let d = Dir::new("stages:\n  a: {cmd: frobnicate}\n");
-    assert!(d.error("run").starts_with("error: stage `a` failed: error: unrecognized subcommand 'frobnicate'"));
+    assert!(
+        d.error("run")
+            .starts_with("error: stage `a` failed: error: unrecognized subcommand 'frobnicate'")
+    );
     let (_, stdout, _) = d.pipeline("run", &[]);
     assert_eq!(stdout, "run  a (never run)\n");
 }
@@ -253,5 +289,8 @@ fn dag_prints_edges_as_text_and_dot() {
     assert!(ok);
     assert_eq!(text, "a\nb <- a (a/t.parquet)\n");
     let (_, dot, _) = d.pipeline("dag", &["--dot"]);
-    assert_eq!(dot, "digraph pipeline {\n  \"a\";\n  \"b\";\n  \"a\" -> \"b\" [label=\"a/t.parquet\"];\n}\n");
+    assert_eq!(
+        dot,
+        "digraph pipeline {\n  \"a\";\n  \"b\";\n  \"a\" -> \"b\" [label=\"a/t.parquet\"];\n}\n"
+    );
 }

@@ -1,2 +1,3 @@
+//! End-to-end tests: one binary that runs the real `usplat4d` CLI (see `util`).
 
 mod pipeline;

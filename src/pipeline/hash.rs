@@ -106,9 +106,10 @@ impl Hasher {
         Hasher { cache_file: Some(cache_file), stamps, dirty: false }
     }
 
-    /// Write the stat cache back if it changed.
+    /// Write the stat cache back if it changed, forgetting files that no longer exist.
     pub fn save(&mut self) -> Result<(), Error> {
         if let (Some(file), true) = (&self.cache_file, self.dirty) {
+            self.stamps.retain(|path, _| Path::new(path).exists());
             let bytes = serde_json::to_vec(&self.stamps)
                 .map_err(|e| Error::BadState { path: file.clone(), message: e.to_string() })?;
             super::write_atomic(file, &bytes)?;

@@ -176,7 +176,10 @@ impl<'a> Runner<'a> {
                 .map(|e| self.p.stages[e.from].name.clone())
                 .collect();
             ups.dedup();
-            reasons.retain(|r| !(matches!(r, Reason::DepMissing { .. }) && !ups.is_empty()));
+            if !ups.is_empty() {
+                // Deps an upstream stage is about to (re)create are not worth reporting.
+                reasons.retain(|r| !matches!(r, Reason::DepMissing { .. }));
+            }
             reasons.extend(ups.into_iter().map(|stage| Reason::Upstream { stage }));
             if force.contains(&i) {
                 reasons.insert(0, Reason::Forced);
@@ -279,7 +282,7 @@ impl<'a> Runner<'a> {
         let outcome = if reasons.is_empty() {
             Outcome::Skipped
         } else if self.restorable(force, i, &cur.key)
-            && let Some(trees) = self.cache.restore(&key, &p.base, &mut self.hasher)?
+            && let Some(trees) = self.cache.restore(&key, &p.base)?
         {
             entry.outs = trees.into_iter().map(|(k, t)| (k, t.hash)).collect();
             Outcome::Restored

@@ -458,6 +458,18 @@ mod tests {
     }
 
     #[test]
+    fn the_readme_example_parses() {
+        let readme = include_str!("../../pipelines/README.md");
+        let start = readme.find("```yaml\n").unwrap() + 8;
+        let text = &readme[start..start + readme[start..].find("```").unwrap()];
+        let p = Pipeline::parse(Path::new("pipelines/example.yaml"), text, &[]).unwrap();
+        let names: Vec<_> = p.stages.iter().map(|s| s.name.as_str()).collect();
+        assert_eq!(names, ["synth@fox", "synth@man", "check"]);
+        assert_eq!(p.stages[1].outs, ["scenes/man"]);
+        assert_eq!(p.stages[1].argv[..3], ["synth", "--gltf", "data/man.glb"]);
+    }
+
+    #[test]
     fn normalizes_paths() {
         assert_eq!(normalize("./a/b/../c/"), "a/c");
         assert_eq!(normalize("../x/./y"), "../x/y");
