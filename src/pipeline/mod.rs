@@ -55,7 +55,7 @@ pub struct RunArgs {
     /// Print what would run and why, without running anything.
     #[arg(long)]
     pub dry_run: bool,
-    /// Size cap of the run cache in GB (LRU eviction; 0 disables it).
+    /// Size cap of the run cache in GB of 10^9 bytes (LRU eviction; 0 disables it).
     #[arg(long, value_name = "GB", default_value_t = 10.0)]
     pub cache_max_gb: f64,
 }
@@ -106,13 +106,9 @@ pub fn run_command(c: &PipelineCommand, ctx: &crate::context::Context) -> anyhow
                 anyhow::bail!("--cache-max-gb must be a number >= 0, got {}", a.cache_max_gb);
             }
             let p = Pipeline::load(&a.file, &a.set)?;
-            let opts = RunOptions {
-                force: a.force.clone(),
-                only: a.only.clone(),
-                dry_run: a.dry_run,
-                cache_max_bytes: (a.cache_max_gb * 1e9) as u64,
-            };
-            let mut runner = Runner::open(&p, opts.cache_max_bytes, a.only.is_empty())?;
+            let opts =
+                RunOptions { force: a.force.clone(), only: a.only.clone(), dry_run: a.dry_run };
+            let mut runner = Runner::open(&p, (a.cache_max_gb * 1e9) as u64, a.only.is_empty())?;
             runner.run(&opts, &mut InProcess { ctx: ctx.clone() }, ctx, out)?;
         }
         PipelineCommand::Status(a) => {

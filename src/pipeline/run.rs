@@ -85,8 +85,6 @@ pub struct RunOptions {
     pub only: Vec<String>,
     /// Print the plan without running anything.
     pub dry_run: bool,
-    /// Run-cache cap in bytes (0 disables the run cache).
-    pub cache_max_bytes: u64,
 }
 
 /// What happened (or would happen) to one stage.

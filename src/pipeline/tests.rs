@@ -67,6 +67,7 @@ impl Executor for FileOps {
 struct Fixture {
     dir: tempfile::TempDir,
     exec: FileOps,
+    cache_max_bytes: u64,
 }
 
 const PIPE: &str = "\
@@ -101,7 +102,7 @@ impl Fixture {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("p.yaml"), yaml).unwrap();
         std::fs::write(dir.path().join("input.txt"), "\nworld\n").unwrap();
-        Fixture { dir, exec: FileOps::default() }
+        Fixture { dir, exec: FileOps::default(), cache_max_bytes: 1 << 30 }
     }
 
     fn file(&self) -> PathBuf {
@@ -118,14 +119,8 @@ impl Fixture {
         let p = Pipeline::load(&self.file(), &sets)?;
         let before = self.exec.total();
         let mut out = Vec::new();
-        let max = if opts.cache_max_bytes == 0 { 1 << 30 } else { opts.cache_max_bytes };
-        let mut runner = Runner::open(&p, max, opts.only.is_empty())?;
-        runner.run(
-            &RunOptions { cache_max_bytes: max, ..opts },
-            &mut self.exec,
-            &Context::quiet(),
-            &mut out,
-        )?;
+        let mut runner = Runner::open(&p, self.cache_max_bytes, opts.only.is_empty())?;
+        runner.run(&opts, &mut self.exec, &Context::quiet(), &mut out)?;
         let lines = String::from_utf8(out).unwrap().lines().map(String::from).collect();
         Ok((lines, self.exec.total() - before))
     }
@@ -246,6 +241,30 @@ fn setting_a_param_back_restores_from_the_run_cache() {
     assert_eq!(f.read("per-a.txt"), "helloworld!");
     assert_eq!(f.read("lines/0.txt"), "hello");
     assert_eq!(f.run(&[]).1, 0);
+}
+
+#[test]
+fn without_a_run_cache_setting_a_param_back_reruns() {
+    let mut f = Fixture::new(PIPE);
+    f.cache_max_bytes = 0;
+    f.run(&[]);
+    f.run(&["suffix=?"]);
+    let (lines, n) = f.run(&[]);
+    assert_eq!(n, 3);
+    assert_eq!(lines[3], "run  tail (param suffix changed ? -> !)");
+    assert!(!f.dir.path().join(".usplat4d/cache").exists());
+}
+
+#[test]
+fn the_in_process_executor_reports_bad_commands_without_running_them() {
+    let f =
+        Fixture::new("stages:\n  a: {cmd: pipeline dag x.yaml}\n  b: {cmd: frobnicate --now}\n");
+    let p = Pipeline::load(&f.file(), &[]).unwrap();
+    let mut exec = InProcess { ctx: Context::quiet() };
+    let e = exec.execute(&p.stages[0], &p.base).unwrap_err();
+    assert_eq!(e.to_string(), "a stage cannot run `pipeline`");
+    let e = exec.execute(&p.stages[1], &p.base).unwrap_err();
+    assert!(e.to_string().starts_with("error: unrecognized subcommand 'frobnicate'"), "{e}");
 }
 
 #[test]
