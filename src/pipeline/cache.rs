@@ -79,6 +79,12 @@ impl RunCache {
         super::write_atomic(&path, &bytes)
     }
 
+    /// The output hashes stored under `key` (path → hash), if any.
+    pub fn out_hashes(&self, key: &str) -> Option<BTreeMap<String, String>> {
+        let m = self.read_manifest(&self.manifest_path(key))?;
+        Some(m.outs.into_iter().map(|(k, t)| (k, t.hash)).collect())
+    }
+
     /// Whether a complete entry for `key` exists.
     pub fn contains(&self, key: &str) -> bool {
         self.max_bytes > 0

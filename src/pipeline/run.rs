@@ -13,7 +13,7 @@ use std::path::Path;
 use super::Error;
 use super::cache::{RunCache, remove_path};
 use super::dag::Dag;
-use super::hash::Hasher;
+use super::hash::{self, Hasher};
 use super::lock::{Lock, LockEntry};
 use super::spec::{Pipeline, Stage};
 use super::status::{self, Reason};
@@ -280,9 +280,9 @@ impl<'a> Runner<'a> {
         let outcome = if reasons.is_empty() {
             Outcome::Skipped
         } else if self.restorable(force, i, &cur.key)
-            && let Some(trees) = self.cache.restore(&key, &p.base)?
+            && let Some(outs) = self.restore(&key, &cur.outs)?
         {
-            entry.outs = trees.into_iter().map(|(k, t)| (k, t.hash)).collect();
+            entry.outs = outs;
             Outcome::Restored
         } else {
             writeln!(out, "{}", Outcome::Ran(reasons.clone()).line(&stage.name)).map_err(io)?;
@@ -324,6 +324,23 @@ impl<'a> Runner<'a> {
             writeln!(out, "{}", outcome.line(&stage.name)).map_err(io)?;
         }
         Ok(outcome)
+    }
+
+    /// Restore the outputs cached under `key`, or adopt the current ones without copying when
+    /// they already are those outputs (e.g. after the lock file was lost). Returns the output
+    /// hashes, `None` when the cache cannot provide them.
+    fn restore(
+        &self,
+        key: &str,
+        current: &BTreeMap<String, Option<hash::Tree>>,
+    ) -> Result<Option<BTreeMap<String, String>>, Error> {
+        let now: Option<BTreeMap<String, String>> =
+            current.iter().map(|(k, t)| t.as_ref().map(|t| (k.clone(), t.hash.clone()))).collect();
+        if now.is_some() && self.cache.out_hashes(key) == now {
+            return Ok(now);
+        }
+        let restored = self.cache.restore(key, &self.p.base)?;
+        Ok(restored.map(|trees| trees.into_iter().map(|(k, t)| (k, t.hash)).collect()))
     }
 
     fn cache_enabled(&self) -> bool {

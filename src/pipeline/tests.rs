@@ -244,6 +244,22 @@ fn setting_a_param_back_restores_from_the_run_cache() {
 }
 
 #[test]
+fn a_lost_lock_is_rebuilt_from_the_run_cache_without_copying() {
+    let mut f = Fixture::new(PIPE);
+    f.run(&[]);
+    let mtime = |f: &Fixture| {
+        std::fs::metadata(f.dir.path().join("lines/0.txt")).unwrap().modified().unwrap()
+    };
+    let before = mtime(&f);
+    std::fs::remove_file(f.dir.path().join("p.lock")).unwrap();
+    let (lines, n) = f.run(&[]);
+    assert_eq!(n, 0);
+    assert_eq!(lines.last().unwrap(), "6 stages: 0 run, 6 restored from run cache, 0 up to date");
+    assert_eq!(mtime(&f), before);
+    assert_eq!(f.run(&[]).0.last().unwrap(), "all 6 stages up to date");
+}
+
+#[test]
 fn without_a_run_cache_setting_a_param_back_reruns() {
     let mut f = Fixture::new(PIPE);
     f.cache_max_bytes = 0;
