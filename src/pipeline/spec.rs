@@ -162,10 +162,14 @@ struct RawBody {
 }
 
 impl Pipeline {
-    /// Read and expand `file`, with `sets` (`name=value`) overriding parameters.
+    /// Read and expand `file`, with `sets` (`name=value`) overriding parameters. The base
+    /// directory is made absolute, so hashes cached per path do not depend on the directory
+    /// `usplat4d` was started from.
     pub fn load(file: &Path, sets: &[String]) -> Result<Pipeline, Error> {
         let text = std::fs::read_to_string(file).map_err(Error::io(file))?;
-        Pipeline::parse(file, &text, sets)
+        let mut p = Pipeline::parse(file, &text, sets)?;
+        p.base = std::path::absolute(&p.base).map_err(Error::io(&p.base))?;
+        Ok(p)
     }
 
     /// Parse `text` as the content of `file` (which gives the base directory).
