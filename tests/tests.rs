@@ -7,4 +7,5 @@ mod bad_inputs;
 mod dycheck;
 mod inspect;
 mod interop;
+mod pipeline;
 mod synth;
