@@ -23,6 +23,7 @@ pub mod forward;
 pub mod isect;
 pub mod project;
 pub mod sh;
+pub mod synthetic;
 #[cfg(test)]
 mod tests;
 
