@@ -25,6 +25,8 @@ pub mod project;
 pub mod sh;
 pub mod synthetic;
 #[cfg(test)]
+mod fit_tests;
+#[cfg(test)]
 mod tests;
 
 pub use blend::Cutoff;
