@@ -126,7 +126,9 @@ pub fn rasterize_bwd(
             o.conic[1] += s[3];
             o.conic[2] += s[4];
             o.opacity += s[5];
-            for (dst, v) in out.channels[g as usize * c..(g as usize + 1) * c].iter_mut().zip(&s[FIXED..]) {
+            for (dst, v) in
+                out.channels[g as usize * c..(g as usize + 1) * c].iter_mut().zip(&s[FIXED..])
+            {
                 *dst += v;
             }
         }
@@ -144,8 +146,20 @@ mod tests {
 
     fn splat(x: f32, y: f32, conic: [f32; 3], opacity: f32, depth: f32) -> Splat2d {
         let power = (255.0 * opacity).ln();
-        Splat2d { mean2d: [x, y], conic, depth, opacity, power, extent: [40.0; 2], radius: 40.0, valid: true }
+        Splat2d {
+            mean2d: [x, y],
+            conic,
+            depth,
+            opacity,
+            power,
+            extent: [40.0; 2],
+            radius: 40.0,
+            valid: true,
+        }
     }
+
+    /// Accessor of one scalar of a splat.
+    type Field = fn(&mut Splat2d) -> &mut f32;
 
     /// Finite differences of L = Σ v_ch·channels + Σ v_a·alpha w.r.t. every 2D parameter and
     /// channel value, with the smooth cutoff so that L is differentiable.
@@ -175,7 +189,8 @@ mod tests {
                 cutoff: Cutoff::Smooth,
             };
             let f = rasterize_fwd(&inp, None);
-            let a: f64 = f.final_t.iter().zip(&v_a).map(|(t, v)| (1.0 - *t as f64) * *v as f64).sum();
+            let a: f64 =
+                f.final_t.iter().zip(&v_a).map(|(t, v)| (1.0 - *t as f64) * *v as f64).sum();
             a + f.channels.iter().zip(&v_ch).map(|(c, v)| *c as f64 * *v as f64).sum::<f64>()
         };
         let isect = isect_tiles(&grid, &splats);
@@ -197,7 +212,7 @@ mod tests {
         for gi in 0..3 {
             // (name, field, analytic, step): σ moves by ½dx²·h for a conic step, with dx up to
             // ~20 px, so conic steps are small to stay within the smooth ramp's curvature.
-            let params: [(&str, fn(&mut Splat2d) -> &mut f32, f32, f32); 6] = [
+            let params: [(&str, Field, f32, f32); 6] = [
                 ("mean.x", |s| &mut s.mean2d[0], g.splats[gi].mean2d[0], h_step),
                 ("mean.y", |s| &mut s.mean2d[1], g.splats[gi].mean2d[1], h_step),
                 ("conic.a", |s| &mut s.conic[0], g.splats[gi].conic[0], 5e-5),

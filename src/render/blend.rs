@@ -38,7 +38,13 @@ pub struct AlphaEval {
 /// Alpha of Gaussian `g` at the pixel centre `(px, py)` (pixel index + 0.5), or `None` when
 /// it does not contribute.
 #[inline]
-pub fn eval_alpha(g: &Splat2d, px: f32, py: f32, alpha_max: f32, cutoff: Cutoff) -> Option<AlphaEval> {
+pub fn eval_alpha(
+    g: &Splat2d,
+    px: f32,
+    py: f32,
+    alpha_max: f32,
+    cutoff: Cutoff,
+) -> Option<AlphaEval> {
     let dx = g.mean2d[0] - px;
     let dy = g.mean2d[1] - py;
     let [a, b, c] = g.conic;
@@ -129,7 +135,7 @@ mod tests {
     fn alpha_matches_formula_clamps_and_cuts() {
         let g = splat(0.8);
         let e = eval_alpha(&g, 11.0, 19.0, 0.99, Cutoff::Hard).unwrap();
-        let sigma: f32 = 0.5 * (0.5 * 1.0 + 0.25 * 1.0) + 0.1 * (-1.0) * 1.0;
+        let sigma: f32 = 0.5 * (0.5 * 1.0 + 0.25 * 1.0) + -0.1 * 1.0;
         assert!((e.alpha - 0.8 * (-sigma).exp()).abs() < 1e-6);
         let full = splat(1.0);
         assert_eq!(eval_alpha(&full, 10.0, 20.0, 0.99, Cutoff::Hard).unwrap().alpha, 0.99);

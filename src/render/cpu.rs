@@ -14,10 +14,13 @@ use super::blend::Cutoff;
 use super::constants::ALPHA_THRESHOLD;
 use super::forward::{FwdImages, RasterInputs, rasterize_fwd};
 use super::isect::{Intersections, TileGrid, isect_tiles, tile_ranges};
-use super::project::{CameraConsts, Splat2d, Splat2dGrad, project, project_vjp, quat_to_rotmat, normalize_quat};
+use super::project::{
+    CameraConsts, Splat2d, Splat2dGrad, normalize_quat, project, project_vjp, quat_to_rotmat,
+};
 use super::{
-    ColorSource, Convergence, CpuRenderer, DifferentiableRenderer, Error, ImageGrads, RasterPass, RenderAux,
-    RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads, SplatInputs, sh,
+    ColorSource, Convergence, CpuRenderer, DifferentiableRenderer, Error, ImageGrads, RasterPass,
+    RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads,
+    SplatInputs, sh,
 };
 
 /// Forward state the CPU backward pass needs (one render's worth).
@@ -40,7 +43,11 @@ pub struct SavedForBackward {
 }
 
 /// Checks array lengths against N (and F) at stage entry.
-fn check_inputs(cam: &RenderCamera, inputs: &SplatInputs, settings: &RenderSettings) -> Result<(), Error> {
+fn check_inputs(
+    cam: &RenderCamera,
+    inputs: &SplatInputs,
+    settings: &RenderSettings,
+) -> Result<(), Error> {
     let n = inputs.means.len();
     let dim = |name: &'static str, got: usize, expected: usize| {
         if got == expected { Ok(()) } else { Err(Error::Shape { name, got, expected }) }
@@ -53,7 +60,9 @@ fn check_inputs(cam: &RenderCamera, inputs: &SplatInputs, settings: &RenderSetti
         ColorSource::Rgb(c) => dim("colors", c.len(), n)?,
         ColorSource::Sh { degree, dc, rest, .. } => {
             if degree > 3 {
-                return Err(Error::Settings(format!("SH degree {degree} is not supported (0..=3)")));
+                return Err(Error::Settings(format!(
+                    "SH degree {degree} is not supported (0..=3)"
+                )));
             }
             dim("sh dc", dc.len(), n)?;
             dim("sh rest", rest.len(), n * 3 * (sh::num_basis(degree) - 1))?;
@@ -194,7 +203,14 @@ fn reduce_stats(saved: &SavedForBackward, fwd: &FwdImages) -> (RenderAux, Vec<u3
     (aux, n_fail)
 }
 
-fn assemble(cam: &RenderCamera, settings: &RenderSettings, nf: usize, saved: &SavedForBackward, fwd: &FwdImages, aux: RenderAux) -> RenderOutput {
+fn assemble(
+    cam: &RenderCamera,
+    settings: &RenderSettings,
+    nf: usize,
+    saved: &SavedForBackward,
+    fwd: &FwdImages,
+    aux: RenderAux,
+) -> RenderOutput {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let nc = 4 + nf;
     let mut out = RenderOutput {
@@ -236,7 +252,12 @@ impl CpuRenderer {
 }
 
 impl Renderer for CpuRenderer {
-    fn render(&self, cam: &RenderCamera, inputs: &SplatInputs, settings: &RenderSettings) -> Result<RenderOutput, Error> {
+    fn render(
+        &self,
+        cam: &RenderCamera,
+        inputs: &SplatInputs,
+        settings: &RenderSettings,
+    ) -> Result<RenderOutput, Error> {
         Ok(self.forward(cam, inputs, settings, RasterPass::Forward)?.0)
     }
 
@@ -249,17 +270,28 @@ impl Renderer for CpuRenderer {
     ) -> Result<Convergence, Error> {
         let (w, h) = (cam.width as usize, cam.height as usize);
         if pixel_pass.len() != w * h {
-            return Err(Error::Shape { name: "pixel_pass", got: pixel_pass.len(), expected: w * h });
+            return Err(Error::Shape {
+                name: "pixel_pass",
+                got: pixel_pass.len(),
+                expected: w * h,
+            });
         }
-        let (saved, fwd) = run_forward(cam, inputs, settings, RasterPass::Forward, Some(pixel_pass))?;
+        let (saved, fwd) =
+            run_forward(cam, inputs, settings, RasterPass::Forward, Some(pixel_pass))?;
         let (aux, n_fail) = reduce_stats(&saved, &fwd);
-        let all_pass = (0..saved.splats.len()).map(|i| aux.n_pixels[i] > 0 && n_fail[i] == 0).collect();
+        let all_pass =
+            (0..saved.splats.len()).map(|i| aux.n_pixels[i] > 0 && n_fail[i] == 0).collect();
         let center_pass = saved
             .splats
             .iter()
             .map(|s| {
                 let (x, y) = (s.mean2d[0].floor(), s.mean2d[1].floor());
-                s.valid && x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h && pixel_pass[y as usize * w + x as usize]
+                s.valid
+                    && x >= 0.0
+                    && y >= 0.0
+                    && (x as usize) < w
+                    && (y as usize) < h
+                    && pixel_pass[y as usize * w + x as usize]
             })
             .collect();
         Ok(Convergence { all_pass, center_pass })
@@ -297,7 +329,11 @@ impl DifferentiableRenderer for CpuRenderer {
             return Err(Error::Settings("saved forward state belongs to another render".into()));
         }
         let opt = |name: &'static str, got: &[f32], expected: usize| {
-            if got.is_empty() || got.len() == expected { Ok(()) } else { Err(Error::Shape { name, got: got.len(), expected }) }
+            if got.is_empty() || got.len() == expected {
+                Ok(())
+            } else {
+                Err(Error::Shape { name, got: got.len(), expected })
+            }
         };
         opt("v_color", &v.color, w * h * 3)?;
         opt("v_alpha", &v.alpha, w * h)?;
@@ -367,7 +403,14 @@ fn project_backward(
             let vc = &v_ch[i * nc..(i + 1) * nc];
             let mut rest = vec![0.0f32; k3];
             if !s.valid {
-                return One { mean: [0.0; 3], quat: [0.0; 4], scale: [0.0; 3], opacity: 0.0, color: [0.0; 3], rest };
+                return One {
+                    mean: [0.0; 3],
+                    quat: [0.0; 4],
+                    scale: [0.0; 3],
+                    opacity: 0.0,
+                    color: [0.0; 3],
+                    rest,
+                };
             }
             let mut v_mean = Vec3::ZERO;
             let mut v_rot = Mat3::ZERO;
@@ -376,15 +419,22 @@ fn project_backward(
                 ColorSource::Rgb(_) => v_rgb,
                 ColorSource::Sh { degree, dc, rest: coeffs, frame } => {
                     let (dir, len) = view_dir(c, inputs.means[i], inputs.quats[i], frame);
-                    let (v_dc, v_dir) =
-                        sh::eval_vjp(degree, dc[i], &coeffs[i * k3..(i + 1) * k3], dir.into(), v_rgb, &mut rest);
+                    let (v_dc, v_dir) = sh::eval_vjp(
+                        degree,
+                        dc[i],
+                        &coeffs[i * k3..(i + 1) * k3],
+                        dir.into(),
+                        v_rgb,
+                        &mut rest,
+                    );
                     if len > 0.0 {
                         let v_dir = Vec3::from(v_dir);
                         // World direction d = (p − c)/|p − c|; local direction Rᵀ d.
                         let (v_dw, d_world) = match frame {
                             ShFrame::World => (v_dir, dir),
                             ShFrame::Local => {
-                                let (q, _) = normalize_quat(inputs.quats[i]).unwrap_or(([1.0, 0.0, 0.0, 0.0], 1.0));
+                                let (q, _) = normalize_quat(inputs.quats[i])
+                                    .unwrap_or(([1.0, 0.0, 0.0, 0.0], 1.0));
                                 let r = quat_to_rotmat(q);
                                 let dw = r * dir;
                                 // dir_l[j] = Σ_i R[i][j] dw[i] → dL/dR[i][j] = dw[i] v_dir[j].
@@ -398,7 +448,8 @@ fn project_backward(
                 }
             };
             let g2 = Splat2dGrad { depth: vc[3], ..v2d[i] };
-            let g3 = project_vjp(c, inputs.means[i], inputs.quats[i], inputs.scales[i], s, &g2, v_rot);
+            let g3 =
+                project_vjp(c, inputs.means[i], inputs.quats[i], inputs.scales[i], s, &g2, v_rot);
             let mean = (Vec3::from(g3.mean) + v_mean).into();
             One { mean, quat: g3.quat, scale: g3.scale, opacity: g3.opacity, color, rest }
         })

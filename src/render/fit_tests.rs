@@ -13,7 +13,11 @@ fn target(w: usize, h: usize) -> Vec<f32> {
             let check = if (x / 16 + y / 16) % 2 == 0 { 0.8 } else { 0.2 };
             let fx = x as f32 / w as f32;
             let fy = y as f32 / h as f32;
-            img.extend_from_slice(&[0.2 + 0.6 * fx, check, 0.5 + 0.4 * (std::f32::consts::TAU * fy).sin() * check]);
+            img.extend_from_slice(&[
+                0.2 + 0.6 * fx,
+                check,
+                0.5 + 0.4 * (std::f32::consts::TAU * fy).sin() * check,
+            ]);
         }
     }
     img
@@ -43,7 +47,8 @@ impl Adam {
 }
 
 fn psnr(a: &[f32], b: &[f32]) -> f64 {
-    let mse = a.iter().zip(b).map(|(x, y)| ((x.clamp(0.0, 1.0) - y) as f64).powi(2)).sum::<f64>() / a.len() as f64;
+    let mse = a.iter().zip(b).map(|(x, y)| ((x.clamp(0.0, 1.0) - y) as f64).powi(2)).sum::<f64>()
+        / a.len() as f64;
     -10.0 * mse.log10()
 }
 
@@ -62,7 +67,8 @@ fn adam_on_2000_gaussians_fits_a_textured_image_above_30_db() {
         means.extend_from_slice(&[(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0]);
     }
     let px = 1.0 / cam.fx;
-    let mut log_scales: Vec<f32> = (0..n).flat_map(|_| [(1.2 * px).ln(), (1.2 * px).ln(), (0.2 * px).ln()]).collect();
+    let mut log_scales: Vec<f32> =
+        (0..n).flat_map(|_| [(1.2 * px).ln(), (1.2 * px).ln(), (0.2 * px).ln()]).collect();
     let mut quats: Vec<f32> = (0..n).flat_map(|_| [1.0, 0.0, 0.0, 0.0]).collect();
     let mut logits = vec![0.0f32; n];
     let mut colors = vec![0.5f32; n * 3];
@@ -78,7 +84,8 @@ fn adam_on_2000_gaussians_fits_a_textured_image_above_30_db() {
     let mut best = 0.0;
     let mut steps = 0;
     for t in 1..=600 {
-        let as3 = |v: &[f32]| v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect::<Vec<[f32; 3]>>();
+        let as3 =
+            |v: &[f32]| v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect::<Vec<[f32; 3]>>();
         let m3 = as3(&means);
         let s3: Vec<[f32; 3]> = as3(&log_scales).iter().map(|s| s.map(f32::exp)).collect();
         let q4: Vec<[f32; 4]> = quats.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect();
@@ -93,7 +100,8 @@ fn adam_on_2000_gaussians_fits_a_textured_image_above_30_db() {
             features: &[],
             num_features: 0,
         };
-        let (out, saved) = CpuRenderer.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward).unwrap();
+        let (out, saved) =
+            CpuRenderer.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward).unwrap();
         best = psnr(&out.color, &gt);
         steps = t;
         if best > 31.0 {
@@ -106,7 +114,12 @@ fn adam_on_2000_gaussians_fits_a_textured_image_above_30_db() {
         };
         let g = CpuRenderer.backward(&cam, &inputs, &settings, &saved, &v).unwrap();
         let g_means: Vec<f32> = g.means.concat();
-        let g_ls: Vec<f32> = g.scales.iter().zip(&s3).flat_map(|(gs, s)| [gs[0] * s[0], gs[1] * s[1], gs[2] * s[2]]).collect();
+        let g_ls: Vec<f32> = g
+            .scales
+            .iter()
+            .zip(&s3)
+            .flat_map(|(gs, s)| [gs[0] * s[0], gs[1] * s[1], gs[2] * s[2]])
+            .collect();
         let g_q: Vec<f32> = g.quats.concat();
         let g_l: Vec<f32> = g.opacities.iter().zip(&op).map(|(go, o)| go * o * (1.0 - o)).collect();
         let g_c: Vec<f32> = g.colors.concat();
@@ -116,6 +129,9 @@ fn adam_on_2000_gaussians_fits_a_textured_image_above_30_db() {
         opt[3].step(t, &mut logits, &g_l);
         opt[4].step(t, &mut colors, &g_c);
     }
-    eprintln!("fit: PSNR {best:.2} dB after {steps} steps in {:.1} s", start.elapsed().as_secs_f64());
+    eprintln!(
+        "fit: PSNR {best:.2} dB after {steps} steps in {:.1} s",
+        start.elapsed().as_secs_f64()
+    );
     assert!(best > 30.0, "PSNR {best:.2} dB after {steps} steps");
 }

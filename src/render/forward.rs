@@ -192,7 +192,8 @@ pub fn rasterize_fwd(inp: &RasterInputs, pixel_pass: Option<&[bool]>) -> FwdImag
             let dst = y as usize * w + x0 as usize;
             img.final_t[dst..dst + tw].copy_from_slice(&tile.final_t[r * tw..(r + 1) * tw]);
             img.last_contributor[dst..dst + tw].copy_from_slice(&tile.last[r * tw..(r + 1) * tw]);
-            img.channels[dst * c..(dst + tw) * c].copy_from_slice(&tile.channels[r * tw * c..(r + 1) * tw * c]);
+            img.channels[dst * c..(dst + tw) * c]
+                .copy_from_slice(&tile.channels[r * tw * c..(r + 1) * tw * c]);
         }
         img.stats.extend_from_slice(&tile.stats);
     }
@@ -258,18 +259,26 @@ mod tests {
                 let i = y * 37 + x;
                 assert!((out.final_t[i] - t).abs() < 1e-6, "T at ({x}, {y})");
                 for ch in 0..3 {
-                    assert!((out.channels[i * 3 + ch] - acc[ch]).abs() < 1e-6, "channel at ({x}, {y})");
+                    assert!(
+                        (out.channels[i * 3 + ch] - acc[ch]).abs() < 1e-6,
+                        "channel at ({x}, {y})"
+                    );
                 }
             }
         }
-        assert_eq!(out.last_contributor[10 * 37 + 10], 2, "both front Gaussians blended at (10, 10)");
+        assert_eq!(
+            out.last_contributor[10 * 37 + 10],
+            2,
+            "both front Gaussians blended at (10, 10)"
+        );
         assert_eq!(out.last_contributor[20 * 37 + 36], 0, "nothing reaches the corner");
     }
 
     #[test]
     fn stops_before_transmittance_drops_to_threshold() {
         let grid = TileGrid::new(16, 16);
-        let splats: Vec<Splat2d> = (0..6).map(|i| splat(8.0, 8.0, 100.0, 1.0, 1.0 + i as f32)).collect();
+        let splats: Vec<Splat2d> =
+            (0..6).map(|i| splat(8.0, 8.0, 100.0, 1.0, 1.0 + i as f32)).collect();
         let channels = vec![1.0; 6];
         let isect = isect_tiles(&grid, &splats);
         let offsets = tile_ranges(&isect.keys, grid.num_tiles());

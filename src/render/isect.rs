@@ -26,7 +26,12 @@ pub struct TileGrid {
 impl TileGrid {
     /// The grid of a `width x height` image.
     pub fn new(width: u32, height: u32) -> Self {
-        TileGrid { width, height, tiles_x: width.div_ceil(TILE_SIZE), tiles_y: height.div_ceil(TILE_SIZE) }
+        TileGrid {
+            width,
+            height,
+            tiles_x: width.div_ceil(TILE_SIZE),
+            tiles_y: height.div_ceil(TILE_SIZE),
+        }
     }
 
     /// Number of tiles TX·TY.

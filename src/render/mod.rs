@@ -19,13 +19,13 @@ pub mod bench;
 pub mod blend;
 pub mod constants;
 pub mod cpu;
+#[cfg(test)]
+mod fit_tests;
 pub mod forward;
 pub mod isect;
 pub mod project;
 pub mod sh;
 pub mod synthetic;
-#[cfg(test)]
-mod fit_tests;
 #[cfg(test)]
 mod tests;
 
@@ -228,8 +228,12 @@ pub struct Convergence {
 /// A Gaussian rasterizer.
 pub trait Renderer {
     /// Render one frame.
-    fn render(&self, camera: &RenderCamera, inputs: &SplatInputs, settings: &RenderSettings)
-    -> Result<RenderOutput, Error>;
+    fn render(
+        &self,
+        camera: &RenderCamera,
+        inputs: &SplatInputs,
+        settings: &RenderSettings,
+    ) -> Result<RenderOutput, Error>;
 
     /// Per-Gaussian convergence against a per-pixel pass map `[H, W]` (e.g.
     /// |rendered − ground truth|₁ < η_c).

@@ -86,8 +86,14 @@ impl CameraConsts {
             fy: cam.fy,
             cx: cam.cx,
             cy: cam.cy,
-            lim_x: [cam.cx / cam.fx + FOV_MARGIN * tan_x, (w - cam.cx) / cam.fx + FOV_MARGIN * tan_x],
-            lim_y: [cam.cy / cam.fy + FOV_MARGIN * tan_y, (h - cam.cy) / cam.fy + FOV_MARGIN * tan_y],
+            lim_x: [
+                cam.cx / cam.fx + FOV_MARGIN * tan_x,
+                (w - cam.cx) / cam.fx + FOV_MARGIN * tan_x,
+            ],
+            lim_y: [
+                cam.cy / cam.fy + FOV_MARGIN * tan_y,
+                (h - cam.cy) / cam.fy + FOV_MARGIN * tan_y,
+            ],
             width: w,
             height: h,
             near: cam.near,
@@ -148,7 +154,12 @@ struct ProjState {
     cov2d: [f32; 3],
 }
 
-fn proj_state(c: &CameraConsts, mean: [f32; 3], quat: [f32; 4], scale: [f32; 3]) -> Option<ProjState> {
+fn proj_state(
+    c: &CameraConsts,
+    mean: [f32; 3],
+    quat: [f32; 4],
+    scale: [f32; 3],
+) -> Option<ProjState> {
     if !mean.iter().chain(scale.iter()).all(|v| v.is_finite()) || scale.iter().any(|s| *s < 0.0) {
         return None;
     }
@@ -181,7 +192,13 @@ fn proj_state(c: &CameraConsts, mean: [f32; 3], quat: [f32; 4], scale: [f32; 3])
 }
 
 /// Project one Gaussian (one thread's work; reference for `gpu::project`).
-pub fn project_one(c: &CameraConsts, mean: [f32; 3], quat: [f32; 4], scale: [f32; 3], opacity: f32) -> Splat2d {
+pub fn project_one(
+    c: &CameraConsts,
+    mean: [f32; 3],
+    quat: [f32; 4],
+    scale: [f32; 3],
+    opacity: f32,
+) -> Splat2d {
     if !(opacity.is_finite() && opacity >= ALPHA_THRESHOLD) {
         return Splat2d::default();
     }
@@ -203,7 +220,10 @@ pub fn project_one(c: &CameraConsts, mean: [f32; 3], quat: [f32; 4], scale: [f32
         && mean2d[0] - extent[0] < c.width
         && mean2d[1] + extent[1] > 0.0
         && mean2d[1] - extent[1] < c.height;
-    if !(on_screen && conic.iter().chain(mean2d.iter()).all(|v| v.is_finite()) && radius.is_finite()) {
+    if !(on_screen
+        && conic.iter().chain(mean2d.iter()).all(|v| v.is_finite())
+        && radius.is_finite())
+    {
         return Splat2d::default();
     }
     Splat2d { mean2d, conic, depth: z, opacity, power, extent, radius, valid: true }
@@ -214,7 +234,9 @@ pub fn project(c: &CameraConsts, inputs: &SplatInputs) -> Vec<Splat2d> {
     let _span = tracing::debug_span!("render.project", n = inputs.means.len()).entered();
     (0..inputs.means.len())
         .into_par_iter()
-        .map(|i| project_one(c, inputs.means[i], inputs.quats[i], inputs.scales[i], inputs.opacities[i]))
+        .map(|i| {
+            project_one(c, inputs.means[i], inputs.quats[i], inputs.scales[i], inputs.opacities[i])
+        })
         .collect()
 }
 
@@ -285,7 +307,9 @@ pub fn project_vjp(
     let (vj00, vj11, vj02, vj12) = (v_j.col(0).x, v_j.col(1).y, v_j.col(2).x, v_j.col(2).y);
     let z2 = z * z;
     let z3 = z2 * z;
-    v_p.z += -c.fx / z2 * vj00 - c.fy / z2 * vj11 + 2.0 * c.fx * s.tx / z3 * vj02 + 2.0 * c.fy * s.ty / z3 * vj12;
+    v_p.z += -c.fx / z2 * vj00 - c.fy / z2 * vj11
+        + 2.0 * c.fx * s.tx / z3 * vj02
+        + 2.0 * c.fy * s.ty / z3 * vj12;
     let v_tx = -c.fx / z2 * vj02;
     let v_ty = -c.fy / z2 * vj12;
     // tx = x when not clamped, z·L otherwise.
@@ -365,7 +389,8 @@ mod tests {
     fn poisoned_and_out_of_view_gaussians_are_culled() {
         let c = CameraConsts::new(&camera());
         let ok = ([0.0, 0.0, 2.0], [1.0, 0.0, 0.0, 0.0], [0.1; 3], 0.5);
-        let cases: Vec<([f32; 3], [f32; 4], [f32; 3], f32)> = vec![
+        type Case = ([f32; 3], [f32; 4], [f32; 3], f32);
+        let cases: Vec<Case> = vec![
             ([0.0, 0.0, -2.0], ok.1, ok.2, ok.3),
             ([f32::NAN, 0.0, 2.0], ok.1, ok.2, ok.3),
             (ok.0, [0.0; 4], ok.2, ok.3),

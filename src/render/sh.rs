@@ -12,8 +12,15 @@ use std::ops::{Add, Mul, Sub};
 
 const C1: f32 = 0.488_602_5;
 const C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
-const C3: [f32; 7] =
-    [-0.590_043_6, 2.890_611_4, -0.457_045_8, 0.373_176_33, -0.457_045_8, 1.445_305_7, -0.590_043_6];
+const C3: [f32; 7] = [
+    -0.590_043_6,
+    2.890_611_4,
+    -0.457_045_8,
+    0.373_176_33,
+    -0.457_045_8,
+    1.445_305_7,
+    -0.590_043_6,
+];
 
 /// Number of basis functions of degree ≤ `degree`, i.e. (degree+1)².
 pub fn num_basis(degree: u8) -> usize {
@@ -41,6 +48,8 @@ impl Sub for Dual3 {
     }
 }
 
+// The product rule adds two terms.
+#[allow(clippy::suspicious_arithmetic_impl)]
 impl Mul for Dual3 {
     type Output = Dual3;
     fn mul(self, o: Dual3) -> Dual3 {

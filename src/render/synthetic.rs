@@ -80,7 +80,8 @@ pub fn camera(width: u32, height: u32) -> RenderCamera {
 pub fn cloud(cam: &RenderCamera, n: usize, depth_complexity: f32, seed: u64) -> Cloud {
     let mut rng = SplitMix64::new(seed);
     let (w, h) = (cam.width as f32, cam.height as f32);
-    let sigma_px = (depth_complexity * w * h / (n.max(1) as f32 * std::f32::consts::PI * 9.0)).sqrt();
+    let sigma_px =
+        (depth_complexity * w * h / (n.max(1) as f32 * std::f32::consts::PI * 9.0)).sqrt();
     let mut c = Cloud::default();
     for _ in 0..n {
         let z = rng.range(2.0, 6.0);

@@ -29,7 +29,9 @@ impl Scene {
     fn inputs(&self) -> SplatInputs<'_> {
         let colors = match self.frame {
             None => ColorSource::Rgb(&self.dc),
-            Some(frame) => ColorSource::Sh { degree: self.degree, dc: &self.dc, rest: &self.rest, frame },
+            Some(frame) => {
+                ColorSource::Sh { degree: self.degree, dc: &self.dc, rest: &self.rest, frame }
+            }
         };
         SplatInputs {
             means: &self.means,
@@ -82,7 +84,12 @@ fn fd_scene(frame: Option<ShFrame>) -> Scene {
     for i in 0..n {
         let z = 2.0 + 0.5 * i as f32;
         s.means.push([rng.range(-0.4, 0.4) * z / 2.0, rng.range(-0.3, 0.3) * z / 2.0, z]);
-        s.quats.push([rng.range(0.5, 1.0), rng.range(-0.5, 0.5), rng.range(-0.5, 0.5), rng.range(-0.5, 0.5)]);
+        s.quats.push([
+            rng.range(0.5, 1.0),
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+        ]);
         s.scales.push([rng.range(0.08, 0.2), rng.range(0.08, 0.2), rng.range(0.05, 0.2)]);
         s.opacities.push(rng.range(0.3, 0.7));
         s.dc.push([rng.range(1.2, 1.6), rng.range(1.2, 1.6), rng.range(1.2, 1.6)]);
@@ -93,15 +100,22 @@ fn fd_scene(frame: Option<ShFrame>) -> Scene {
 }
 
 fn fd_camera() -> RenderCamera {
-    let w2c = Mat4::from_rotation_y(0.1) * Mat4::from_translation(glam::Vec3::new(0.05, -0.02, 0.1));
+    let w2c =
+        Mat4::from_rotation_y(0.1) * Mat4::from_translation(glam::Vec3::new(0.05, -0.02, 0.1));
     RenderCamera { w2c, ..camera(48, 40) }
 }
 
 /// L = Σ v·image over colour, alpha, depth and features, accumulated in f64.
 fn loss(cam: &RenderCamera, s: &Scene, v: &ImageGrads) -> f64 {
-    let (out, _) = CpuRenderer.render_with_saved(cam, &s.inputs(), &settings(), RasterPass::BackwardSmoothCutoff).unwrap();
-    let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| *x as f64 * *y as f64).sum::<f64>();
-    dot(&out.color, &v.color) + dot(&out.alpha, &v.alpha) + dot(&out.depth, &v.depth) + dot(&out.features, &v.features)
+    let (out, _) = CpuRenderer
+        .render_with_saved(cam, &s.inputs(), &settings(), RasterPass::BackwardSmoothCutoff)
+        .unwrap();
+    let dot =
+        |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| *x as f64 * *y as f64).sum::<f64>();
+    dot(&out.color, &v.color)
+        + dot(&out.alpha, &v.alpha)
+        + dot(&out.depth, &v.depth)
+        + dot(&out.features, &v.features)
 }
 
 #[test]
@@ -110,13 +124,19 @@ fn gradients_match_finite_differences_for_every_parameter_group() {
     let (w, h) = (48usize, 40usize);
     let mut rng = SplitMix64::new(11);
     let mut cot = |len: usize| (0..len).map(|_| rng.range(-1.0, 1.0)).collect::<Vec<f32>>();
-    let v = ImageGrads { color: cot(w * h * 3), alpha: cot(w * h), depth: cot(w * h), features: cot(w * h * 2) };
+    let v = ImageGrads {
+        color: cot(w * h * 3),
+        alpha: cot(w * h),
+        depth: cot(w * h),
+        features: cot(w * h * 2),
+    };
     let mut failures = Vec::new();
     let mut checked = 0;
     for frame in [None, Some(ShFrame::World), Some(ShFrame::Local)] {
         let s = fd_scene(frame);
-        let (_, saved) =
-            CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::BackwardSmoothCutoff).unwrap();
+        let (_, saved) = CpuRenderer
+            .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::BackwardSmoothCutoff)
+            .unwrap();
         let g = CpuRenderer.backward(&cam, &s.inputs(), &settings(), &saved, &v).unwrap();
         // Case table: (param, gaussian, component, analytic, step); steps in the parameter's
         // own units, small for scale/rotation because σ at the rim moves ∝ 1/scale².
@@ -157,11 +177,18 @@ fn gradients_match_finite_differences_for_every_parameter_group() {
             let fd = (bump(step) - bump(-step)) / (2.0 * step as f64);
             checked += 1;
             if (fd - analytic as f64).abs() > 2e-2 + 2e-2 * fd.abs() {
-                failures.push(format!("{frame:?} {param}[{i}][{k}]: fd {fd:.5} vs analytic {analytic:.5}"));
+                failures.push(format!(
+                    "{frame:?} {param}[{i}][{k}]: fd {fd:.5} vs analytic {analytic:.5}"
+                ));
             }
         }
     }
-    assert!(failures.is_empty(), "{} of {checked} cases failed:\n{}", failures.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} of {checked} cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
 }
 
 /// Per-pixel reference without tiles: every valid splat, sorted by (depth, index).
@@ -242,14 +269,22 @@ fn fuzzed_inputs_are_culled_never_panic_and_leave_outputs_finite() {
     // Still rendered, must not poison the image: zero scale (a point splat) and NaN colour.
     s.scales[10] = [0.0; 3];
     s.dc[11] = [nan, inf, -inf];
-    let (out, saved) = CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward).unwrap();
+    let (out, saved) = CpuRenderer
+        .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward)
+        .unwrap();
     for (i, what) in &poison {
         assert!(!out.aux.visible[*i], "{what} must be culled");
         assert_eq!((out.aux.sum_w2[*i], out.aux.n_pixels[*i]), (0.0, 0), "{what}");
     }
     let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
-    assert!(finite(&out.color) && finite(&out.alpha) && finite(&out.depth) && finite(&out.aux.sum_w2));
-    let v = ImageGrads { color: vec![1.0; 32 * 24 * 3], alpha: vec![1.0; 32 * 24], ..ImageGrads::default() };
+    assert!(
+        finite(&out.color) && finite(&out.alpha) && finite(&out.depth) && finite(&out.aux.sum_w2)
+    );
+    let v = ImageGrads {
+        color: vec![1.0; 32 * 24 * 3],
+        alpha: vec![1.0; 32 * 24],
+        ..ImageGrads::default()
+    };
     let g = CpuRenderer.backward(&cam, &s.inputs(), &settings(), &saved, &v).unwrap();
     assert!(g.means.iter().flatten().all(|x| x.is_finite()));
     assert!(g.quats.iter().flatten().all(|x| x.is_finite()));
@@ -290,11 +325,17 @@ fn output_and_gradients_are_bit_identical_across_thread_counts() {
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         pool.install(|| {
-            let (out, saved) =
-                CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward).unwrap();
+            let (out, saved) = CpuRenderer
+                .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward)
+                .unwrap();
             let g = CpuRenderer.backward(&cam, &s.inputs(), &settings(), &saved, &v).unwrap();
-            let mut bits = [to_bits(&out.color), to_bits(&out.alpha), to_bits(&out.depth), to_bits(&out.aux.sum_w2)]
-                .concat();
+            let mut bits = [
+                to_bits(&out.color),
+                to_bits(&out.alpha),
+                to_bits(&out.depth),
+                to_bits(&out.aux.sum_w2),
+            ]
+            .concat();
             bits.extend(to_bits(&out.aux.sum_w));
             bits.extend(to_bits(&g.means.concat()));
             bits.extend(to_bits(&g.quats.concat()));
@@ -370,7 +411,10 @@ fn convergence_checks_all_covered_pixels_and_the_centre_pixel() {
         nf: 0,
     };
     let splats = project(&consts, &s.inputs());
-    assert!(splats[3].valid && splats[3].mean2d[0] > 64.0, "Gaussian 3 is centred off-screen but visible");
+    assert!(
+        splats[3].valid && splats[3].mean2d[0] > 64.0,
+        "Gaussian 3 is centred off-screen but visible"
+    );
     let mut pass = vec![true; 64 * 32];
     // Fail one pixel inside Gaussian 0's footprint, 3 px from its centre.
     let (cx, cy) = (splats[0].mean2d[0] as usize, splats[0].mean2d[1] as usize);

@@ -20,12 +20,15 @@ use crate::context::Context;
 use crate::image_io::{Image, write_atomic, write_npy_f32, write_png};
 use crate::model::{FrameState, Model};
 use crate::render::{
-    ColorSource, CpuRenderer, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatInputs,
+    ColorSource, CpuRenderer, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame,
+    SplatInputs,
 };
 use crate::scene::{Camera, Scene, Split};
 
 /// Which cameras to render.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum SplitSel {
     /// Training cameras only.
@@ -37,7 +40,9 @@ pub enum SplitSel {
 }
 
 /// Frame in which spherical harmonics are evaluated.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum ShFrameArg {
     /// World view direction (3DGS, Shape of Motion).
@@ -100,9 +105,10 @@ pub fn parse_background(s: &str) -> anyhow::Result<[f32; 3]> {
         "white" => Ok([1.0; 3]),
         "black" => Ok([0.0; 3]),
         _ => {
-            let v: Vec<f32> = s.split(',').map(|p| p.trim().parse::<f32>()).collect::<Result<_, _>>().map_err(|_| {
-                anyhow::anyhow!("--background '{s}': expected white, black or R,G,B")
-            })?;
+            let v: Vec<f32> =
+                s.split(',').map(|p| p.trim().parse::<f32>()).collect::<Result<_, _>>().map_err(
+                    |_| anyhow::anyhow!("--background '{s}': expected white, black or R,G,B"),
+                )?;
             match v[..] {
                 [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([r, g, b]),
                 _ => anyhow::bail!("--background '{s}': expected three values in [0, 1]"),
@@ -248,8 +254,14 @@ pub(crate) mod tests {
         let (scene_dir, model_dir) = (dir.join("scene"), dir.join("model"));
         let mut cameras = Vec::new();
         for frame in 0..frames {
-            for (name, split, angle) in [("cam00", Split::Train, 0.0f64), ("cam01", Split::Eval, 20.0)] {
-                let eye = DVec3::new(4.0 * angle.to_radians().sin(), 0.0, -4.0 * angle.to_radians().cos());
+            for (name, split, angle) in
+                [("cam00", Split::Train, 0.0f64), ("cam01", Split::Eval, 20.0)]
+            {
+                let eye = DVec3::new(
+                    4.0 * angle.to_radians().sin(),
+                    0.0,
+                    -4.0 * angle.to_radians().cos(),
+                );
                 // OpenCV axes: look at the origin, y down.
                 let c2w_gl = DMat4::look_at_rh(eye, DVec3::ZERO, DVec3::NEG_Y).inverse();
                 let w2c = (c2w_gl * DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0))).inverse();
@@ -284,7 +296,7 @@ pub(crate) mod tests {
             g.dynamic.push(true);
             g.scale.push([0.05, 0.05, 0.005]);
             g.opacity.push(0.9);
-            let check = if ((i % side) / 4 + (i / side) / 4) % 2 == 0 { 1.0 } else { 0.3 };
+            let check = if ((i % side) / 4 + (i / side) / 4).is_multiple_of(2) { 1.0 } else { 0.3 };
             g.color.push([u * check, v * check, (1.0 - u) * check]);
             pos.push([2.0 * u - 1.0, 2.0 * v - 1.0, 0.0]);
         }
@@ -316,11 +328,14 @@ pub(crate) mod tests {
         };
         run(&p, &Context::quiet()).unwrap();
         for t in 0..3 {
-            let img = crate::image_io::read_png(&out.join(format!("rgb/cam01/{t:05}.png"))).unwrap();
+            let img =
+                crate::image_io::read_png(&out.join(format!("rgb/cam01/{t:05}.png"))).unwrap();
             assert_eq!((img.width, img.height, img.channels), (80, 60, 4));
             assert!(img.at(40, 30, 3) > 0.95, "the plane covers the centre");
             assert_eq!(img.at(0, 0, 3), 0.0, "the corner is empty");
-            let (shape, d) = crate::image_io::read_npy_f32(&out.join(format!("depth/cam01/{t:05}.npy"))).unwrap();
+            let (shape, d) =
+                crate::image_io::read_npy_f32(&out.join(format!("depth/cam01/{t:05}.npy")))
+                    .unwrap();
             assert_eq!(shape, vec![60, 80]);
             assert!((d[30 * 80 + 40] - 4.0).abs() < 0.2, "depth at the centre {}", d[30 * 80 + 40]);
         }
@@ -369,6 +384,9 @@ pub(crate) mod tests {
             depth: false,
         };
         let err = run(&p, &Context::quiet()).unwrap_err().to_string();
-        assert!(err.contains("cameras.parquet") && err.contains("frame 2") && err.contains("2 frames"), "{err}");
+        assert!(
+            err.contains("cameras.parquet") && err.contains("frame 2") && err.contains("2 frames"),
+            "{err}"
+        );
     }
 }
