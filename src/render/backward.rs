@@ -1,9 +1,10 @@
 //! Stage 5, `rasterize_bwd`: gradients of the blended images w.r.t. each Gaussian's 2D
 //! parameters and channel values (reference for `gpu::rasterize_bwd`).
 //!
-//! Mapping: rayon over tiles; within a tile one pixel at a time ([`backward_pixel`] = one GPU
-//! thread) walks the tile's list back to front, starting at its `last_contributor` with
-//! `T = final_t` and recovering each earlier transmittance as `T / (1 − α)`. Reads the same
+//! Mapping: rayon over tiles; within a tile each pixel (one GPU thread) walks the tile's list
+//! back to front, starting at its `last_contributor` with `T = final_t` and recovering each
+//! earlier transmittance as `T / (1 − α)`; the CPU runs the same per-pixel arithmetic
+//! Gaussian-major (see `backward_tile`). Reads the same
 //! inputs as the forward pass plus `[H, W]` final transmittance and last contributor and the
 //! cotangents `[H, W, C]` (dL/d blended channels) and `[H, W]` (dL/d alpha). Per-pair
 //! gradients accumulate in a tile-local `[len, 6 + C]` buffer in pixel order; the tiles'
@@ -12,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use super::blend::{alpha_vjp, eval_alpha};
+use super::blend::{alpha_vjp, eval_alpha, for_each_row};
 use super::forward::{RasterInputs, TileList};
 use super::project::Splat2dGrad;
 
@@ -28,46 +29,76 @@ pub struct BwdGrads {
 /// Gradient slots per pair: mean2d (2), conic (3), opacity (1), then C channels.
 const FIXED: usize = 6;
 
-/// Walk one pixel back to front (one GPU thread's work), accumulating into `grads`
-/// (`[len, 6 + C]` for the tile's list). `v_pix` is `[C]`.
-pub(crate) fn backward_pixel(
-    list: &TileList,
-    px: f32,
-    py: f32,
-    final_t: f32,
-    last: u32,
-    v_pix: &[f32],
-    v_alpha_pix: f32,
+/// Backward of one tile, Gaussian-major from the back: the Gaussians of the tile's list in
+/// reverse order each update the pixels of their footprint that they were blended into
+/// (`j < last_contributor`). Per pixel this is exactly the back-to-front walk of the GPU
+/// thread (same operations, same order), so the results are the same bits. Returns the
+/// tile's `[len, 6 + C]` per-pair gradients.
+fn backward_tile(
     inp: &RasterInputs,
-    buf: &mut [f32],
-    grads: &mut [f32],
-) {
-    let c = v_pix.len();
+    t: usize,
+    final_t: &[f32],
+    last_contributor: &[u32],
+    v_channels: &[f32],
+    v_alpha: &[f32],
+) -> Vec<f32> {
+    let list: TileList = inp.gather(t);
+    let c = inp.num_channels;
     let stride = FIXED + c;
-    buf.iter_mut().for_each(|b| *b = 0.0);
-    let mut t = final_t;
-    for j in (0..last as usize).rev() {
+    let w = inp.grid.width as usize;
+    let (x0, y0, x1, y1) = inp.tile_pixels(t);
+    let tw = (x1 - x0) as usize;
+    let n_px = tw * (y1 - y0) as usize;
+    let mut tr = Vec::with_capacity(n_px);
+    let mut last = Vec::with_capacity(n_px);
+    for y in y0..y1 {
+        let i = y as usize * w + x0 as usize;
+        tr.extend_from_slice(&final_t[i..i + tw]);
+        last.extend_from_slice(&last_contributor[i..i + tw]);
+    }
+    let max_last = last.iter().copied().max().unwrap_or(0) as usize;
+    let mut buf = vec![0.0f32; n_px * c];
+    let mut grads = vec![0.0f32; list.splats.len() * stride];
+    for j in (0..max_last).rev() {
         let g = &list.splats[j];
-        let Some(e) = eval_alpha(g, px, py, inp.alpha_max, inp.cutoff) else { continue };
-        let ra = 1.0 / (1.0 - e.alpha);
-        t *= ra;
-        let w = e.alpha * t;
         let ch = &list.channels[j * c..(j + 1) * c];
         let slot = &mut grads[j * stride..(j + 1) * stride];
-        let mut v_alpha = final_t * ra * v_alpha_pix;
-        for k in 0..c {
-            slot[FIXED + k] += w * v_pix[k];
-            v_alpha += (ch[k] * t - buf[k] * ra) * v_pix[k];
-            buf[k] += ch[k] * w;
-        }
-        let (vm, vc, vo) = alpha_vjp(g, &e, v_alpha, inp.alpha_max, inp.cutoff);
-        slot[0] += vm[0];
-        slot[1] += vm[1];
-        slot[2] += vc[0];
-        slot[3] += vc[1];
-        slot[4] += vc[2];
-        slot[5] += vo;
+        for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
+            let py = y as f32 + 0.5;
+            let row = (y - y0) as usize * tw;
+            for x in xa..xb {
+                let k = row + (x - x0) as usize;
+                if j as u32 >= last[k] {
+                    continue;
+                }
+                let Some(e) = eval_alpha(g, x as f32 + 0.5, py, inp.alpha_max, inp.cutoff) else {
+                    continue;
+                };
+                let p = y as usize * w + x as usize;
+                let v_pix = &v_channels[p * c..(p + 1) * c];
+                let ft = final_t[p];
+                let ra = 1.0 / (1.0 - e.alpha);
+                tr[k] *= ra;
+                let t = tr[k];
+                let wgt = e.alpha * t;
+                let b = &mut buf[k * c..(k + 1) * c];
+                let mut v_a = ft * ra * v_alpha[p];
+                for q in 0..c {
+                    slot[FIXED + q] += wgt * v_pix[q];
+                    v_a += (ch[q] * t - b[q] * ra) * v_pix[q];
+                    b[q] += ch[q] * wgt;
+                }
+                let (vm, vc, vo) = alpha_vjp(g, &e, v_a, inp.alpha_max, inp.cutoff);
+                slot[0] += vm[0];
+                slot[1] += vm[1];
+                slot[2] += vc[0];
+                slot[3] += vc[1];
+                slot[4] += vc[2];
+                slot[5] += vo;
+            }
+        });
     }
+    grads
 }
 
 /// Stage `rasterize_bwd`. `final_t` and `last_contributor` come from the forward pass of
@@ -88,30 +119,7 @@ pub fn rasterize_bwd(
     let stride = FIXED + c;
     let tiles: Vec<Vec<f32>> = (0..inp.grid.num_tiles())
         .into_par_iter()
-        .map(|t| {
-            let list = inp.gather(t);
-            let mut grads = vec![0.0f32; list.splats.len() * stride];
-            let mut buf = vec![0.0f32; c];
-            let (x0, y0, x1, y1) = inp.tile_pixels(t);
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    let i = y as usize * w + x as usize;
-                    backward_pixel(
-                        &list,
-                        x as f32 + 0.5,
-                        y as f32 + 0.5,
-                        final_t[i],
-                        last_contributor[i],
-                        &v_channels[i * c..(i + 1) * c],
-                        v_alpha[i],
-                        inp,
-                        &mut buf,
-                        &mut grads,
-                    );
-                }
-            }
-            grads
-        })
+        .map(|t| backward_tile(inp, t, final_t, last_contributor, v_channels, v_alpha))
         .collect();
     let n = inp.splats.len();
     let mut out = BwdGrads { splats: vec![Splat2dGrad::default(); n], channels: vec![0.0; n * c] };

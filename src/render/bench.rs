@@ -60,6 +60,17 @@ fn default_repeats() -> usize {
     5
 }
 
+/// Process CPU time (user + system, all threads) in ms from `/proc/self/stat`, assuming
+/// Linux's USER_HZ = 100; `None` elsewhere. On a busy shared machine wall time overstates
+/// the cost; CPU time / threads is what an idle machine would show with perfect scaling.
+fn cpu_ms() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks * 10.0)
+}
+
 fn median_ms(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]

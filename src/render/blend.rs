@@ -68,6 +68,45 @@ pub fn eval_alpha(
     Some(AlphaEval { alpha, raw, vis, dx, dy })
 }
 
+/// Conservative pixel footprint of `g` inside the pixel rectangle `[x0, x1) x [y0, y1)`:
+/// calls `row(y, xa, xb)` for every row whose pixel centres may satisfy `σ <= power`, with
+/// the column range `[xa, xb)` that contains them (widened by a small margin so that
+/// rounding never drops a pixel; [`eval_alpha`] makes the exact decision). Lets the
+/// rasterizers visit about the ellipse's area instead of the whole tile.
+#[inline]
+pub fn for_each_row(
+    g: &Splat2d,
+    x0: u32,
+    y0: u32,
+    x1: u32,
+    y1: u32,
+    mut row: impl FnMut(u32, u32, u32),
+) {
+    let [mx, my] = g.mean2d;
+    let [a, b, c] = g.conic;
+    let p = g.power * (1.0 + 1e-3) + 1e-3;
+    let ext_y = g.extent[1] + 1.0;
+    let ya = ((my - ext_y - 0.5).floor().max(y0 as f32)) as u32;
+    let yb = ((my + ext_y + 0.5).ceil().min(y1 as f32)).max(ya as f32) as u32;
+    for y in ya..yb {
+        let dy = my - (y as f32 + 0.5);
+        // σ(dx) = ½a dx² + b dy dx + ½c dy² ≤ p, dx = mx − px.
+        let disc = b * b * dy * dy - a * (c * dy * dy - 2.0 * p);
+        if !(disc >= 0.0) {
+            continue;
+        }
+        let root = disc.sqrt();
+        let (dx_lo, dx_hi) = ((-b * dy - root) / a, (-b * dy + root) / a);
+        let lo = (mx - dx_hi - 0.5).floor() - 1.0;
+        let hi = (mx - dx_lo - 0.5).floor() + 2.0;
+        let xa = lo.max(x0 as f32);
+        let xb = hi.min(x1 as f32);
+        if xa < xb {
+            row(y, xa as u32, xb as u32);
+        }
+    }
+}
+
 /// Gradient of the alpha w.r.t. the Gaussian's 2D parameters, given `v_alpha = dL/dα`.
 /// Returns `(v_mean2d, v_conic, v_opacity)`; zero where α is clamped at `alpha_max`.
 #[inline]
@@ -164,6 +203,33 @@ mod tests {
             }
         }
         assert_eq!(prev, 0.0);
+    }
+
+    #[test]
+    fn row_spans_contain_every_contributing_pixel() {
+        let mut g = splat(0.9);
+        g.conic = [0.08, -0.05, 0.2];
+        let det = g.conic[0] * g.conic[2] - g.conic[1] * g.conic[1];
+        // Bounding-box half-widths from the covariance (inverse of the conic).
+        g.extent =
+            [(2.0 * g.power * g.conic[2] / det).sqrt(), (2.0 * g.power * g.conic[0] / det).sqrt()];
+        let mut visited = vec![false; 64 * 64];
+        for_each_row(&g, 0, 0, 64, 64, |y, xa, xb| {
+            for x in xa..xb {
+                visited[(y * 64 + x) as usize] = true;
+            }
+        });
+        let mut hits = 0;
+        for y in 0..64u32 {
+            for x in 0..64u32 {
+                if eval_alpha(&g, x as f32 + 0.5, y as f32 + 0.5, 0.99, Cutoff::Hard).is_some() {
+                    assert!(visited[(y * 64 + x) as usize], "pixel ({x}, {y}) missed");
+                    hits += 1;
+                }
+            }
+        }
+        let n_visited = visited.iter().filter(|v| **v).count();
+        assert!(hits > 50 && n_visited < hits * 2, "{n_visited} visited for {hits} hits");
     }
 
     #[test]

@@ -1,8 +1,9 @@
 //! Stage 4, `rasterize_fwd`: front-to-back alpha blending of each tile's depth-sorted
 //! Gaussians (reference for `gpu::rasterize_fwd`).
 //!
-//! Mapping: rayon over tiles; within a tile, one pixel at a time walks the tile's list front
-//! to back (one call of [`rasterize_pixel`] = one GPU thread). Reads `[N]` [`Splat2d`],
+//! Mapping: rayon over tiles; within a tile the GPU runs one thread per pixel walking the
+//! tile's list front to back; the CPU runs the same per-pixel arithmetic Gaussian-major
+//! (see `rasterize_tile`), which gives the same bits and skips pixels outside each ellipse. Reads `[N]` [`Splat2d`],
 //! `[N, C]` channel values, the sorted `[M]` intersections and `[TX·TY+1]` tile offsets.
 //! Writes `[H, W, C]` blended channels (Σ T·α·c, no background), `[H, W]` final
 //! transmittance and last contributor, and `[M]` per-pair statistics (accumulated per tile
@@ -10,7 +11,7 @@
 
 use rayon::prelude::*;
 
-use super::blend::{Cutoff, eval_alpha};
+use super::blend::{Cutoff, eval_alpha, for_each_row};
 use super::constants::{T_THRESHOLD, TILE_SIZE};
 use super::isect::{Intersections, TileGrid};
 use super::project::Splat2d;
@@ -95,40 +96,64 @@ impl RasterInputs<'_> {
     }
 }
 
-/// Blend one pixel (one GPU thread's work): accumulates into `acc` `[C]` and `stats`
-/// (the tile's `[len]` pair statistics); returns `(final_t, last_contributor)`.
-pub(crate) fn rasterize_pixel(
-    list: &TileList,
-    px: f32,
-    py: f32,
-    alpha_max: f32,
-    cutoff: Cutoff,
-    pass: bool,
-    acc: &mut [f32],
-    stats: &mut [PairStats],
-) -> (f32, u32) {
-    let c = acc.len();
-    let mut t = 1.0f32;
-    let mut last = 0u32;
+/// Blend one tile. Gaussian-major: each Gaussian, front to back, updates the pixels of
+/// its footprint ([`for_each_row`]); every pixel still sees its Gaussians in list order and
+/// does exactly the arithmetic of the per-pixel loop of the GPU kernel, so the results are
+/// the same bits, while only ~the ellipse area is visited instead of the whole tile.
+fn rasterize_tile(inp: &RasterInputs, t: usize, pixel_pass: Option<&[bool]>) -> TileOut {
+    let list = inp.gather(t);
+    let c = inp.num_channels;
+    let w = inp.grid.width as usize;
+    let (x0, y0, x1, y1) = inp.tile_pixels(t);
+    let tw = (x1 - x0) as usize;
+    let n_px = tw * (y1 - y0) as usize;
+    let mut out = TileOut {
+        channels: vec![0.0; n_px * c],
+        final_t: vec![1.0; n_px],
+        last: vec![0; n_px],
+        stats: vec![PairStats::default(); list.splats.len()],
+    };
+    let mut done = vec![false; n_px];
+    let mut n_done = 0;
     for (j, g) in list.splats.iter().enumerate() {
-        let Some(e) = eval_alpha(g, px, py, alpha_max, cutoff) else { continue };
-        let next_t = t * (1.0 - e.alpha);
-        if next_t <= T_THRESHOLD {
+        if n_done == n_px {
             break;
         }
-        let w = e.alpha * t;
-        for (a, v) in acc.iter_mut().zip(&list.channels[j * c..(j + 1) * c]) {
-            *a += w * v;
-        }
-        let s = &mut stats[j];
-        s.sum_w2 += w * w;
-        s.sum_w += w;
-        s.n_pixels += 1;
-        s.n_fail += u32::from(!pass);
-        t = next_t;
-        last = j as u32 + 1;
+        let ch = &list.channels[j * c..(j + 1) * c];
+        let s = &mut out.stats[j];
+        for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
+            let py = y as f32 + 0.5;
+            let row = (y - y0) as usize * tw;
+            for x in xa..xb {
+                let k = row + (x - x0) as usize;
+                if done[k] {
+                    continue;
+                }
+                let Some(e) = eval_alpha(g, x as f32 + 0.5, py, inp.alpha_max, inp.cutoff) else {
+                    continue;
+                };
+                let t = out.final_t[k];
+                let next_t = t * (1.0 - e.alpha);
+                if next_t <= T_THRESHOLD {
+                    done[k] = true;
+                    n_done += 1;
+                    continue;
+                }
+                let wgt = e.alpha * t;
+                for (a, v) in out.channels[k * c..(k + 1) * c].iter_mut().zip(ch) {
+                    *a += wgt * v;
+                }
+                s.sum_w2 += wgt * wgt;
+                s.sum_w += wgt;
+                s.n_pixels += 1;
+                let pass = pixel_pass.is_none_or(|p| p[y as usize * w + x as usize]);
+                s.n_fail += u32::from(!pass);
+                out.final_t[k] = next_t;
+                out.last[k] = j as u32 + 1;
+            }
+        });
     }
-    (t, last)
+    out
 }
 
 struct TileOut {
@@ -146,38 +171,7 @@ pub fn rasterize_fwd(inp: &RasterInputs, pixel_pass: Option<&[bool]>) -> FwdImag
     let (w, h, c) = (inp.grid.width as usize, inp.grid.height as usize, inp.num_channels);
     let tiles: Vec<TileOut> = (0..inp.grid.num_tiles())
         .into_par_iter()
-        .map(|t| {
-            let list = inp.gather(t);
-            let (x0, y0, x1, y1) = inp.tile_pixels(t);
-            let n_px = ((x1 - x0) * (y1 - y0)) as usize;
-            let mut out = TileOut {
-                channels: vec![0.0; n_px * c],
-                final_t: Vec::with_capacity(n_px),
-                last: Vec::with_capacity(n_px),
-                stats: vec![PairStats::default(); list.splats.len()],
-            };
-            let mut k = 0;
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    let pass = pixel_pass.is_none_or(|p| p[y as usize * w + x as usize]);
-                    let acc = &mut out.channels[k * c..(k + 1) * c];
-                    let (ft, last) = rasterize_pixel(
-                        &list,
-                        x as f32 + 0.5,
-                        y as f32 + 0.5,
-                        inp.alpha_max,
-                        inp.cutoff,
-                        pass,
-                        acc,
-                        &mut out.stats,
-                    );
-                    out.final_t.push(ft);
-                    out.last.push(last);
-                    k += 1;
-                }
-            }
-            out
-        })
+        .map(|t| rasterize_tile(inp, t, pixel_pass))
         .collect();
     let mut img = FwdImages {
         channels: vec![0.0; w * h * c],
