@@ -62,7 +62,8 @@ fn backward_tile(
     for j in (0..max_last).rev() {
         let g = &list.splats[j];
         let ch = &list.channels[j * c..(j + 1) * c];
-        let slot = &mut grads[j * stride..(j + 1) * stride];
+        let (fixed, v_ch_slot) = grads[j * stride..(j + 1) * stride].split_at_mut(FIXED);
+        let mut acc = [0.0f32; FIXED];
         for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
             let py = y as f32 + 0.5;
             let row = (y - y0) as usize * tw;
@@ -84,19 +85,20 @@ fn backward_tile(
                 let b = &mut buf[k * c..(k + 1) * c];
                 let mut v_a = ft * ra * v_alpha[p];
                 for q in 0..c {
-                    slot[FIXED + q] += wgt * v_pix[q];
+                    v_ch_slot[q] += wgt * v_pix[q];
                     v_a += (ch[q] * t - b[q] * ra) * v_pix[q];
                     b[q] += ch[q] * wgt;
                 }
                 let (vm, vc, vo) = alpha_vjp(g, &e, v_a, inp.alpha_max, inp.cutoff);
-                slot[0] += vm[0];
-                slot[1] += vm[1];
-                slot[2] += vc[0];
-                slot[3] += vc[1];
-                slot[4] += vc[2];
-                slot[5] += vo;
+                acc[0] += vm[0];
+                acc[1] += vm[1];
+                acc[2] += vc[0];
+                acc[3] += vc[1];
+                acc[4] += vc[2];
+                acc[5] += vo;
             }
         });
+        fixed.copy_from_slice(&acc);
     }
     grads
 }

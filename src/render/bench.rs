@@ -4,7 +4,8 @@
 //!
 //! Columns: N Gaussians; M tile-Gaussian intersections; blended (Gaussian, pixel) pairs
 //! (α ≥ 1/255, before termination, i.e. Σ n_pixels); median ms per frame of the forward
-//! pass and of forward + backward; blended pairs per second of the forward pass.
+//! pass and of forward + backward (wall clock); mean process CPU ms per frame of each (all
+//! threads); blended pairs per second of the forward pass (wall clock).
 
 use std::time::Instant;
 
@@ -97,9 +98,10 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
     );
     println!();
     println!(
-        "| N | M (tile pairs) | blended pairs | forward ms | fwd+bwd ms | blended pairs/s (fwd) |"
+        "| N | M (tile pairs) | blended pairs | forward ms | fwd+bwd ms | forward CPU ms \
+         | fwd+bwd CPU ms | blended pairs/s (fwd) |"
     );
-    println!("|---:|---:|---:|---:|---:|---:|");
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|");
     let bar = ctx.progress(p.counts.len() as u64, "bench render");
     for &n in &p.counts {
         let c = cloud(&cam, n, p.depth_complexity, p.seed);
@@ -119,13 +121,15 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
             alpha: vec![1e-3; w * h],
             ..ImageGrads::default()
         };
-        let mut fwd = Vec::new();
-        let mut both = Vec::new();
-        let mut pairs = 0;
+        let (mut fwd, mut both, mut pairs) = (Vec::new(), Vec::new(), 0);
+        let c0 = cpu_ms();
         for _ in 0..p.repeats {
             let t0 = Instant::now();
             std::hint::black_box(CpuRenderer.render(&cam, &inputs, &settings)?);
             fwd.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        let c1 = cpu_ms();
+        for _ in 0..p.repeats {
             let t0 = Instant::now();
             let (_, saved) =
                 CpuRenderer.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward)?;
@@ -133,9 +137,16 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
             both.push(t0.elapsed().as_secs_f64() * 1e3);
             pairs = saved.isect.keys.len();
         }
+        let c2 = cpu_ms();
+        let per = |a: Option<f64>, b: Option<f64>| match (a, b) {
+            (Some(a), Some(b)) => format!("{:.1}", (b - a) / p.repeats as f64),
+            _ => "-".into(),
+        };
         let (f, b) = (median_ms(fwd), median_ms(both));
         println!(
-            "| {n} | {pairs} | {blended} | {f:.1} | {b:.1} | {:.3e} |",
+            "| {n} | {pairs} | {blended} | {f:.1} | {b:.1} | {} | {} | {:.3e} |",
+            per(c0, c1),
+            per(c1, c2),
             blended as f64 / (f / 1e3)
         );
         bar.inc(1);

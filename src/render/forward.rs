@@ -120,7 +120,7 @@ fn rasterize_tile(inp: &RasterInputs, t: usize, pixel_pass: Option<&[bool]>) -> 
             break;
         }
         let ch = &list.channels[j * c..(j + 1) * c];
-        let s = &mut out.stats[j];
+        let mut s = PairStats::default();
         for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
             let py = y as f32 + 0.5;
             let row = (y - y0) as usize * tw;
@@ -152,6 +152,7 @@ fn rasterize_tile(inp: &RasterInputs, t: usize, pixel_pass: Option<&[bool]>) -> 
                 out.last[k] = j as u32 + 1;
             }
         });
+        out.stats[j] = s;
     }
     out
 }
