@@ -92,7 +92,7 @@ pub fn for_each_row(
         let dy = my - (y as f32 + 0.5);
         // σ(dx) = ½a dx² + b dy dx + ½c dy² ≤ p, dx = mx − px.
         let disc = b * b * dy * dy - a * (c * dy * dy - 2.0 * p);
-        if !(disc >= 0.0) {
+        if disc < 0.0 {
             continue;
         }
         let root = disc.sqrt();
