@@ -242,79 +242,14 @@ fn write_manifest(out: &Path, p: &RenderParams, count: usize) -> anyhow::Result<
 }
 
 #[cfg(test)]
-pub(crate) mod tests {
+mod tests {
     use super::*;
-    use crate::model::Gaussians;
-    use crate::tables::Provenance;
-    use glam::{DMat4, DVec3};
-
-    /// A hand-made scene and model: a textured, slowly rotating plane of Gaussians seen by
-    /// a train camera and an eval camera 20° to the side, over `frames` frames.
-    pub(crate) fn tiny_scene_and_model(dir: &Path, frames: u32) -> (PathBuf, PathBuf) {
-        let (scene_dir, model_dir) = (dir.join("scene"), dir.join("model"));
-        let mut cameras = Vec::new();
-        for frame in 0..frames {
-            for (name, split, angle) in
-                [("cam00", Split::Train, 0.0f64), ("cam01", Split::Eval, 20.0)]
-            {
-                let eye = DVec3::new(
-                    4.0 * angle.to_radians().sin(),
-                    0.0,
-                    -4.0 * angle.to_radians().cos(),
-                );
-                // OpenCV axes: look at the origin, y down.
-                let c2w_gl = DMat4::look_at_rh(eye, DVec3::ZERO, DVec3::NEG_Y).inverse();
-                let w2c = (c2w_gl * DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0))).inverse();
-                cameras.push(Camera {
-                    frame,
-                    camera: name.into(),
-                    split,
-                    fx: 60.0,
-                    fy: 60.0,
-                    cx: 40.0,
-                    cy: 30.0,
-                    width: 80,
-                    height: 60,
-                    w2c: Camera::w2c_from_mat(w2c),
-                    image_path: format!("rgb/{name}/{frame:05}.png"),
-                    depth_path: None,
-                    mask_path: None,
-                    angle_offset_deg: Some(angle as f32),
-                    distortion: None,
-                });
-            }
-        }
-        let scene = Scene { dir: scene_dir.clone(), cameras };
-        scene.save(&Provenance::new("test", &())).unwrap();
-        let side = 24usize;
-        let n = side * side;
-        let mut g = Gaussians { sh_degree: 0, ..Gaussians::default() };
-        let mut pos = Vec::new();
-        for i in 0..n {
-            let (u, v) = ((i % side) as f32 / side as f32, (i / side) as f32 / side as f32);
-            g.id.push(i as u32);
-            g.dynamic.push(true);
-            g.scale.push([0.05, 0.05, 0.005]);
-            g.opacity.push(0.9);
-            let check = if ((i % side) / 4 + (i / side) / 4).is_multiple_of(2) { 1.0 } else { 0.3 };
-            g.color.push([u * check, v * check, (1.0 - u) * check]);
-            pos.push([2.0 * u - 1.0, 2.0 * v - 1.0, 0.0]);
-        }
-        let states = (0..frames).map(|t| {
-            let a = 0.2 * t as f32;
-            let q = [(a / 2.0).cos(), 0.0, 0.0, (a / 2.0).sin()];
-            let rot = glam::Quat::from_rotation_z(a);
-            let position = pos.iter().map(|p| (rot * glam::Vec3::from(*p)).into()).collect();
-            Ok(FrameState { frame: t, position, rotation: vec![q; n] })
-        });
-        Model::save(&model_dir, &g, states, &Provenance::new("test", &())).unwrap();
-        (scene_dir, model_dir)
-    }
+    use crate::render::synthetic::write_demo_scene;
 
     #[test]
     fn renders_every_camera_of_a_split_with_straight_alpha() {
         let dir = tempfile::tempdir().unwrap();
-        let (scene, model) = tiny_scene_and_model(dir.path(), 3);
+        let (scene, model) = write_demo_scene(dir.path(), 3).unwrap();
         let out = dir.path().join("out");
         let p = RenderParams {
             model,
@@ -371,8 +306,8 @@ pub(crate) mod tests {
         assert!(parse_background("0.5,0.5").is_err());
         assert_eq!(parse_background("0,0.5,1").unwrap(), [0.0, 0.5, 1.0]);
         let dir = tempfile::tempdir().unwrap();
-        let (scene, _) = tiny_scene_and_model(dir.path(), 3);
-        let (_, model) = tiny_scene_and_model(&dir.path().join("short"), 2);
+        let (scene, _) = write_demo_scene(dir.path(), 3).unwrap();
+        let (_, model) = write_demo_scene(&dir.path().join("short"), 2).unwrap();
         let p = RenderParams {
             model,
             scene,
