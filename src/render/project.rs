@@ -231,7 +231,12 @@ pub fn project_one(
 
 /// Stage `project`: every Gaussian of `inputs`, `[N]` out (rayon over Gaussians).
 pub fn project(c: &CameraConsts, inputs: &SplatInputs) -> Vec<Splat2d> {
-    let _span = tracing::debug_span!("render.project", n = inputs.means.len()).entered();
+    let n = inputs.means.len();
+    assert!(
+        inputs.quats.len() == n && inputs.scales.len() == n && inputs.opacities.len() == n,
+        "project: means, quats, scales and opacities must all be [N]"
+    );
+    let _span = tracing::debug_span!("render.project", n).entered();
     (0..inputs.means.len())
         .into_par_iter()
         .map(|i| {

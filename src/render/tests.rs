@@ -266,9 +266,12 @@ fn fuzzed_inputs_are_culled_never_panic_and_leave_outputs_finite() {
     s.opacities[7] = nan;
     s.means[8] = [1e30, -1e30, 1e30];
     s.opacities[9] = -0.5;
-    // Still rendered, must not poison the image: zero scale (a point splat) and NaN colour.
+    // Still rendered, must not poison the image: zero scale (a point splat), NaN colour and
+    // a huge scale.
     s.scales[10] = [0.0; 3];
     s.dc[11] = [nan, inf, -inf];
+    // Huge but finite: covers every tile with a nearly flat footprint.
+    s.scales[12] = [1e5; 3];
     let (out, saved) = CpuRenderer
         .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward)
         .unwrap();
