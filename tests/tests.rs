@@ -8,4 +8,5 @@ mod dycheck;
 mod inspect;
 mod interop;
 mod pipeline;
+mod render;
 mod synth;

@@ -4,8 +4,33 @@
 //! Inputs are one frame's Gaussians ([`SplatInputs`], canonical order, `[N]` arrays) and a
 //! pinhole [`RenderCamera`]. Outputs are images `[H, W, C]` plus per-Gaussian statistics in
 //! [`RenderAux`], indexed by canonical position (0 when culled).
+//!
+//! The CPU rasterizer is split into gsplat's stages, each a public function with its own
+//! tests: [`project::project`] → [`isect::isect_tiles`] → [`isect::tile_ranges`] →
+//! [`forward::rasterize_fwd`] → [`backward::rasterize_bwd`]; [`blend`] holds the
+//! per-(Gaussian, pixel) alpha math both passes share and [`constants`] its thresholds;
+//! [`cpu`] chains them. Gradients come from [`DifferentiableRenderer`].
+//!
+//! Colour convention (3DGS): `colour = dc + Σ_k Y_k(dir)·rest_k`, clamped at 0, where `dc`
+//! is the degree-0 RGB; colour images are composited over the background.
 
+pub mod backward;
 pub mod bench;
+pub mod blend;
+pub mod constants;
+pub mod cpu;
+#[cfg(test)]
+mod fit_tests;
+pub mod forward;
+pub mod isect;
+pub mod project;
+pub mod sh;
+pub mod synthetic;
+#[cfg(test)]
+mod tests;
+
+pub use blend::Cutoff;
+pub use cpu::SavedForBackward;
 
 use glam::Mat4;
 
@@ -145,6 +170,32 @@ pub struct RenderAux {
     pub n_pixels: Vec<u32>,
 }
 
+impl RenderOutput {
+    /// Cheap consistency check of the output sizes: `Err` names the first array whose
+    /// length disagrees with W, H, F and N.
+    pub fn validate_counts(&self, num_features: usize, num_gaussians: usize) -> Result<(), Error> {
+        let (w, h) = (self.width, self.height);
+        let a = &self.aux;
+        let checks: [(&'static str, usize, usize); 9] = [
+            ("color", self.color.len(), w * h * 3),
+            ("features", self.features.len(), w * h * num_features),
+            ("alpha", self.alpha.len(), w * h),
+            ("depth", self.depth.len(), w * h),
+            ("aux.visible", a.visible.len(), num_gaussians),
+            ("aux.radius_px", a.radius_px.len(), num_gaussians),
+            ("aux.sum_w2", a.sum_w2.len(), num_gaussians),
+            ("aux.sum_w", a.sum_w.len(), num_gaussians),
+            ("aux.n_pixels", a.n_pixels.len(), num_gaussians),
+        ];
+        for (name, got, expected) in checks {
+            if got != expected {
+                return Err(Error::Shape { name, got, expected });
+            }
+        }
+        Ok(())
+    }
+}
+
 /// The images of one render.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct RenderOutput {
@@ -195,27 +246,87 @@ pub trait Renderer {
     ) -> Result<Convergence, Error>;
 }
 
-/// The CPU reference rasterizer (rayon over tiles).
+/// The CPU reference rasterizer (rayon over tiles), implemented in [`cpu`].
 #[derive(Debug, Clone, Copy, Default)]
 pub struct CpuRenderer;
 
-impl Renderer for CpuRenderer {
-    fn render(
-        &self,
-        _c: &RenderCamera,
-        _i: &SplatInputs,
-        _s: &RenderSettings,
-    ) -> Result<RenderOutput, Error> {
-        Err(Error::Settings("CPU renderer being written".into()))
-    }
+/// Which pass a render is for (selects the alpha cutoff; see [`Cutoff`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum RasterPass {
+    /// Inference: hard 1/255 cutoff.
+    #[default]
+    Forward,
+    /// Training: hard cutoff, the same images as `Forward`, followed by a backward pass.
+    Backward,
+    /// Finite-difference tests: smooth cutoff so that the images are differentiable.
+    BackwardSmoothCutoff,
+}
 
-    fn convergence(
-        &self,
-        _c: &RenderCamera,
-        _i: &SplatInputs,
-        _s: &RenderSettings,
-        _p: &[bool],
-    ) -> Result<Convergence, Error> {
-        Err(Error::Settings("CPU renderer being written".into()))
+impl RasterPass {
+    /// The alpha cutoff of this pass.
+    pub fn cutoff(self) -> Cutoff {
+        match self {
+            RasterPass::Forward | RasterPass::Backward => Cutoff::Hard,
+            RasterPass::BackwardSmoothCutoff => Cutoff::Smooth,
+        }
     }
+}
+
+/// Cotangents of a render's images (dL/d output). An empty vector means all zeros.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ImageGrads {
+    /// dL/d colour `[H, W, 3]` (of the composited colour).
+    pub color: Vec<f32>,
+    /// dL/d alpha `[H, W]`.
+    pub alpha: Vec<f32>,
+    /// dL/d expected depth `[H, W]`.
+    pub depth: Vec<f32>,
+    /// dL/d features `[H, W, F]`.
+    pub features: Vec<f32>,
+}
+
+/// Gradients w.r.t. one frame's Gaussians, canonical order, 0 for culled Gaussians.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SplatGrads {
+    /// dL/d positions `[N]`.
+    pub means: Vec<[f32; 3]>,
+    /// dL/d rotations `[N]` (w, x, y, z), w.r.t. the unnormalised input quaternion.
+    pub quats: Vec<[f32; 4]>,
+    /// dL/d scales `[N]`.
+    pub scales: Vec<[f32; 3]>,
+    /// dL/d opacities `[N]`.
+    pub opacities: Vec<f32>,
+    /// dL/d colour `[N]`: the RGB of [`ColorSource::Rgb`] or the `dc` of [`ColorSource::Sh`].
+    pub colors: Vec<[f32; 3]>,
+    /// dL/d SH `rest` `[N, K, 3]` flattened (empty for RGB).
+    pub sh_rest: Vec<f32>,
+    /// dL/d features `[N, F]`.
+    pub features: Vec<f32>,
+}
+
+/// A renderer with gradients (the optimiser's interface). `Saved` is the forward state the
+/// backward pass needs (CPU: [`SavedForBackward`]; GPU: device buffers).
+pub trait DifferentiableRenderer: Renderer {
+    /// Forward state kept for [`DifferentiableRenderer::backward`].
+    type Saved;
+
+    /// Render one frame and keep what the backward pass needs.
+    fn render_with_saved(
+        &self,
+        camera: &RenderCamera,
+        inputs: &SplatInputs,
+        settings: &RenderSettings,
+        pass: RasterPass,
+    ) -> Result<(RenderOutput, Self::Saved), Error>;
+
+    /// Gradients of the loss w.r.t. the inputs of the render that produced `saved`, given the
+    /// image cotangents. Exact for that render; deterministic whatever the thread count.
+    fn backward(
+        &self,
+        camera: &RenderCamera,
+        inputs: &SplatInputs,
+        settings: &RenderSettings,
+        saved: &Self::Saved,
+        grads: &ImageGrads,
+    ) -> Result<SplatGrads, Error>;
 }
