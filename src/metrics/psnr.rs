@@ -61,7 +61,10 @@ mod tests {
     fn size_mismatch_is_an_error() {
         let a = img(2, 1, vec![0.0; 6]);
         let b = img(1, 2, vec![0.0; 6]);
-        assert_eq!(psnr(&a, &b, None).unwrap_err().to_string(), "psnr: sizes differ: 2x1x3 vs 1x2x3");
+        assert_eq!(
+            psnr(&a, &b, None).unwrap_err().to_string(),
+            "psnr: sizes differ: 2x1x3 vs 1x2x3"
+        );
         let e = psnr(&a, &a, Some(&[1.0])).unwrap_err().to_string();
         assert_eq!(e, "psnr: sizes differ: 2x1x3 vs mask of 1 pixels");
     }

@@ -119,7 +119,8 @@ impl Blur {
         let mut scale2 = vec![0.0; h1 * w1];
         for y in 0..h1 {
             for x in 0..w1 {
-                let s: f64 = (0..WINDOW).map(|k| (scale1[(y + k) * w1 + x] != 0.0) as u8 as f64).sum();
+                let s: f64 =
+                    (0..WINDOW).map(|k| (scale1[(y + k) * w1 + x] != 0.0) as u8 as f64).sum();
                 scale2[y * w1 + x] = factor(s);
             }
         }

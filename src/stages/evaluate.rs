@@ -27,7 +27,17 @@ use crate::scene::{Camera, Scene};
 use crate::tables::{Provenance, Table, metrics::MetricRow, metrics::MetricsTable};
 
 /// Whether LPIPS is computed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    clap::ValueEnum,
+    serde::Deserialize,
+    serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum LpipsMode {
     /// Compute LPIPS when the weights are installed; otherwise warn and leave it null.
@@ -40,7 +50,17 @@ pub enum LpipsMode {
 }
 
 /// Which eval cameras use their masks.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    clap::ValueEnum,
+    serde::Deserialize,
+    serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskMode {
     /// Masked metrics for cameras that have a mask and no angle offset (DyCheck-like
@@ -119,7 +139,11 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
     };
     let rows = evaluate_images(&scene, renders, &method, lpips.as_ref(), p.masks, ctx)?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    crate::tables::metrics::write(&out.join(MetricsTable::file_name()), &rows, &Provenance::new("evaluate", p))?;
+    crate::tables::metrics::write(
+        &out.join(MetricsTable::file_name()),
+        &rows,
+        &Provenance::new("evaluate", p),
+    )?;
     let summary = summarise(&rows);
     let json = serde_json::to_string_pretty(&summary).context("serialising the summary")?;
     image_io::write_atomic(&out.join("summary.json"), format!("{json}\n").as_bytes())?;
@@ -128,7 +152,7 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
     print!("{md}");
     if let Some(min) = p.fail_below {
         let all = summary.groups.last().map_or(f64::NAN, |g| g.psnr);
-        if !(all >= min) {
+        if all.is_nan() || all < min {
             return Err(crate::stages::CheckFailed(format!(
                 "mean PSNR {all:.3} dB of '{method}' on '{}' is below --fail-below {min}",
                 summary.scene
@@ -168,12 +192,20 @@ pub fn evaluate_images(
 ) -> anyhow::Result<Vec<MetricRow>> {
     let cams: Vec<&Camera> = scene.eval().collect();
     if cams.is_empty() {
-        anyhow::bail!("{}: the scene has no eval cameras", Scene::cameras_path(&scene.dir).display());
+        anyhow::bail!(
+            "{}: the scene has no eval cameras",
+            Scene::cameras_path(&scene.dir).display()
+        );
     }
     for c in &cams {
         let path = renders.join(&c.image_path);
         if !path.is_file() {
-            anyhow::bail!("missing render for camera '{}' frame {}: {}", c.camera, c.frame, path.display());
+            anyhow::bail!(
+                "missing render for camera '{}' frame {}: {}",
+                c.camera,
+                c.frame,
+                path.display()
+            );
         }
     }
     let label = dir_label(&scene.dir);
@@ -201,7 +233,9 @@ fn evaluate_one(
 ) -> anyhow::Result<MetricRow> {
     let gt_path = scene.resolve(&c.image_path);
     let render_path = renders.join(&c.image_path);
-    let load = |p: &Path| -> anyhow::Result<Image> { Ok(image_io::read_png(p)?.rgb_over([1.0; 3]).quantized()) };
+    let load = |p: &Path| -> anyhow::Result<Image> {
+        Ok(image_io::read_png(p)?.rgb_over([1.0; 3]).quantized())
+    };
     let gt = load(&gt_path)?;
     let render = load(&render_path)?;
     if (gt.width, gt.height) != (render.width, render.height) {
@@ -243,7 +277,10 @@ fn evaluate_one(
         angle_offset_deg: c.angle_offset_deg,
         psnr: psnr(&render, &gt, m).with_context(|| ctx("PSNR"))?,
         ssim: ssim(&render, &gt, m).with_context(|| ctx("SSIM"))?,
-        lpips: lpips.map(|l| l.distance(&render, &gt, m)).transpose().with_context(|| ctx("LPIPS"))?,
+        lpips: lpips
+            .map(|l| l.distance(&render, &gt, m))
+            .transpose()
+            .with_context(|| ctx("LPIPS"))?,
         masked: m.is_some(),
     })
 }
@@ -304,8 +341,10 @@ pub fn summarise(rows: &[MetricRow]) -> Summary {
     let mut groups = Vec::new();
     if rows.iter().any(|r| r.angle_offset_deg.is_some()) {
         for (i, (lo, hi)) in VIEW_RANGES.iter().enumerate() {
-            let in_range: Vec<&MetricRow> =
-                rows.iter().filter(|r| r.angle_offset_deg.and_then(view_range) == Some(i)).collect();
+            let in_range: Vec<&MetricRow> = rows
+                .iter()
+                .filter(|r| r.angle_offset_deg.and_then(view_range) == Some(i))
+                .collect();
             if !in_range.is_empty() {
                 groups.push(group(format!("({lo}°, {hi}°]"), &in_range));
             }
@@ -333,7 +372,10 @@ impl Summary {
     /// The summary as a Markdown table.
     pub fn markdown(&self) -> String {
         let [p, s, l] = self.names();
-        let mut md = format!("# {} on {}\n\n| views | images | {p} | {s} | {l} |\n|---|---|---|---|---|\n", self.method, self.scene);
+        let mut md = format!(
+            "# {} on {}\n\n| views | images | {p} | {s} | {l} |\n|---|---|---|---|---|\n",
+            self.method, self.scene
+        );
         for g in &self.groups {
             md.push_str(&format!(
                 "| {} | {} | {:.2} | {:.3} | {} |\n",

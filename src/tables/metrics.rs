@@ -61,7 +61,9 @@ pub struct MetricRow {
 
 /// Write `rows` to `path` atomically (one row group).
 pub fn write(path: &Path, rows: &[MetricRow], provenance: &Provenance) -> Result<()> {
-    let s = |f: fn(&MetricRow) -> &str| -> ArrayRef { Arc::new(StringArray::from_iter_values(rows.iter().map(f))) };
+    let s = |f: fn(&MetricRow) -> &str| -> ArrayRef {
+        Arc::new(StringArray::from_iter_values(rows.iter().map(f)))
+    };
     let cols: Vec<ArrayRef> = vec![
         s(|r| &r.scene),
         s(|r| &r.method),
@@ -102,7 +104,7 @@ pub fn read(path: &Path) -> Result<Vec<MetricRow>> {
         if psnr[i].is_nan() || psnr[i] == f64::NEG_INFINITY {
             return Err(bad("psnr", i, format!("value {} (expected a number or +inf)", psnr[i])));
         }
-        if !(ssim[i].abs() <= 1.0) {
+        if ssim[i].is_nan() || ssim[i].abs() > 1.0 {
             return Err(bad("ssim", i, format!("value {} outside [-1, 1]", ssim[i])));
         }
         if let Some(l) = lpips[i]
@@ -115,8 +117,14 @@ pub fn read(path: &Path) -> Result<Vec<MetricRow>> {
         {
             return Err(bad("angle_offset_deg", i, format!("non-finite value {a}")));
         }
-        if let Some(first) = seen.insert((scene[i].clone(), method[i].clone(), camera[i].clone(), frame[i]), i) {
-            return Err(bad("camera", i, format!("camera '{}' frame {} repeats row {first}", camera[i], frame[i])));
+        if let Some(first) =
+            seen.insert((scene[i].clone(), method[i].clone(), camera[i].clone(), frame[i]), i)
+        {
+            return Err(bad(
+                "camera",
+                i,
+                format!("camera '{}' frame {} repeats row {first}", camera[i], frame[i]),
+            ));
         }
         rows.push(MetricRow {
             scene: scene[i].clone(),
@@ -166,11 +174,21 @@ mod tests {
     fn bad_values_name_column_and_row() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("metrics.parquet");
-        write(&p, &[row("cam01", 0, 20.0), row("cam01", 1, f64::NAN)], &Provenance::default()).unwrap();
+        write(&p, &[row("cam01", 0, 20.0), row("cam01", 1, f64::NAN)], &Provenance::default())
+            .unwrap();
         let e = read(&p).unwrap_err().to_string();
-        assert_eq!(e, format!("{}: column 'psnr', row 1: value NaN (expected a number or +inf)", p.display()));
+        assert_eq!(
+            e,
+            format!("{}: column 'psnr', row 1: value NaN (expected a number or +inf)", p.display())
+        );
         write(&p, &[row("cam01", 0, 20.0), row("cam01", 0, 21.0)], &Provenance::default()).unwrap();
         let e = read(&p).unwrap_err().to_string();
-        assert_eq!(e, format!("{}: column 'camera', row 1: camera 'cam01' frame 0 repeats row 0", p.display()));
+        assert_eq!(
+            e,
+            format!(
+                "{}: column 'camera', row 1: camera 'cam01' frame 0 repeats row 0",
+                p.display()
+            )
+        );
     }
 }

@@ -55,7 +55,8 @@ impl Conv {
             for ci in 0..cin {
                 for ky in 0..k {
                     for kx in 0..k {
-                        hwio[((ky * k + kx) * cin + ci) * cout + co] = w.weight[((co * cin + ci) * k + ky) * k + kx];
+                        hwio[((ky * k + kx) * cin + ci) * cout + co] =
+                            w.weight[((co * cin + ci) * k + ky) * k + kx];
                     }
                 }
             }
@@ -71,7 +72,8 @@ impl Conv {
         let ow = (x.w + 2 * p - k) / s + 1;
         let kk = k * k * self.cin;
         let cout = self.cout;
-        let weights = ArrayView2::from_shape((kk, cout), &self.hwio).expect("weights are [k·k·Cin, Cout]");
+        let weights =
+            ArrayView2::from_shape((kk, cout), &self.hwio).expect("weights are [k·k·Cin, Cout]");
         let mut out = vec![0.0f32; oh * ow * cout];
         out.par_chunks_mut(CHUNK * cout).enumerate().for_each(|(chunk, out)| {
             let p0 = chunk * CHUNK;
@@ -99,7 +101,8 @@ impl Conv {
                 row.copy_from_slice(&self.bias);
             }
             let a = ArrayView2::from_shape((np, kk), &col).expect("patches are [P, k·k·Cin]");
-            let mut c = ArrayViewMut2::from_shape((np, cout), &mut *out).expect("output is [P, Cout]");
+            let mut c =
+                ArrayViewMut2::from_shape((np, cout), &mut *out).expect("output is [P, Cout]");
             general_mat_mul(1.0, &a, &weights, 1.0, &mut c);
             for v in out.iter_mut() {
                 *v = v.max(0.0);
@@ -147,8 +150,10 @@ impl Network {
     /// (mapped to [−1, 1], then through the scaling layer). `H, W ≥ MIN_SIDE`.
     pub fn taps(&self, rgb: &[f32], w: usize, h: usize) -> Vec<Features> {
         assert!(w >= MIN_SIDE && h >= MIN_SIDE, "image {w}x{h} below {MIN_SIDE}");
-        let data =
-            rgb.chunks_exact(3).flat_map(|p| (0..3).map(move |c| ((2.0 * p[c] - 1.0) - SHIFT[c]) / SCALE[c])).collect();
+        let data = rgb
+            .chunks_exact(3)
+            .flat_map(|p| (0..3).map(move |c| ((2.0 * p[c] - 1.0) - SHIFT[c]) / SCALE[c]))
+            .collect();
         let mut x = Features { h, w, c: 3, data };
         let mut taps = Vec::with_capacity(5);
         for (i, conv) in self.convs.iter().enumerate() {
@@ -175,7 +180,11 @@ impl Network {
                 .map(|(pa, pb)| {
                     let na = pa.iter().map(|v| v * v).sum::<f32>().sqrt() + 1e-10;
                     let nb = pb.iter().map(|v| v * v).sum::<f32>().sqrt() + 1e-10;
-                    pa.iter().zip(pb).zip(lin).map(|((x, y), l)| l * (x / na - y / nb).powi(2)).sum()
+                    pa.iter()
+                        .zip(pb)
+                        .zip(lin)
+                        .map(|((x, y), l)| l * (x / na - y / nb).powi(2))
+                        .sum()
                 })
                 .collect();
             for (m, v) in map.iter_mut().zip(upsample_bilinear(&layer, fa.w, fa.h, w, h)) {
@@ -236,7 +245,8 @@ mod tests {
     #[test]
     fn conv_matches_a_direct_convolution() {
         let (cin, cout, k) = (2, 3, 3);
-        let weight: Vec<f32> = (0..cout * cin * k * k).map(|i| ((i * 7 % 11) as f32 - 5.0) / 10.0).collect();
+        let weight: Vec<f32> =
+            (0..cout * cin * k * k).map(|i| ((i * 7 % 11) as f32 - 5.0) / 10.0).collect();
         let bias = vec![0.1, -0.2, 0.05];
         let cw = ConvWeights { cin, cout, k, weight: weight.clone(), bias: bias.clone() };
         let conv = Conv::new(&cw, 2, 1);
@@ -252,7 +262,8 @@ mod tests {
                     for ci in 0..cin {
                         for ky in 0..k {
                             for kx in 0..k {
-                                let (iy, ix) = ((oy * 2 + ky) as isize - 1, (ox * 2 + kx) as isize - 1);
+                                let (iy, ix) =
+                                    ((oy * 2 + ky) as isize - 1, (ox * 2 + kx) as isize - 1);
                                 if iy >= 0 && ix >= 0 && (iy as usize) < h && (ix as usize) < w {
                                     acc += weight[((co * cin + ci) * k + ky) * k + kx]
                                         * x.data[(iy as usize * w + ix as usize) * cin + ci];
@@ -261,7 +272,10 @@ mod tests {
                         }
                     }
                     let got = y.data[(oy * y.w + ox) * cout + co];
-                    assert!((got - acc.max(0.0)).abs() < 1e-5, "({oy}, {ox}, {co}): {got} vs {acc}");
+                    assert!(
+                        (got - acc.max(0.0)).abs() < 1e-5,
+                        "({oy}, {ox}, {co}): {got} vs {acc}"
+                    );
                 }
             }
         }
@@ -269,11 +283,14 @@ mod tests {
 
     #[test]
     fn max_pool_takes_window_maxima() {
-        let x = Features { h: 5, w: 5, c: 1, data: (0..25).map(|i| ((i * 7) % 25) as f32).collect() };
+        let x =
+            Features { h: 5, w: 5, c: 1, data: (0..25).map(|i| ((i * 7) % 25) as f32).collect() };
         let y = max_pool(&x);
         assert_eq!((y.h, y.w), (2, 2));
         // Window rows 0..3, cols 0..3 of values (7i mod 25).
-        let want: f32 = (0..3).flat_map(|r| (0..3).map(move |c| ((r * 5 + c) * 7 % 25) as f32)).fold(0.0, f32::max);
+        let want: f32 = (0..3)
+            .flat_map(|r| (0..3).map(move |c| ((r * 5 + c) * 7 % 25) as f32))
+            .fold(0.0, f32::max);
         assert_eq!(y.data[0], want);
     }
 }

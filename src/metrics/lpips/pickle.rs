@@ -86,7 +86,9 @@ impl Value {
     /// The entry of a dict with str key `key`.
     pub fn get(&self, key: &str) -> Option<&Value> {
         match self {
-            Value::Dict(items) => items.iter().find(|(k, _)| matches!(k, Value::Str(s) if s == key)).map(|(_, v)| v),
+            Value::Dict(items) => {
+                items.iter().find(|(k, _)| matches!(k, Value::Str(s) if s == key)).map(|(_, v)| v)
+            }
             _ => None,
         }
     }
@@ -120,7 +122,8 @@ struct Vm<'a> {
 
 /// Decode the pickle in `data` (the bytes after it are ignored).
 pub fn load(data: &[u8]) -> Result<Value, PickleError> {
-    let mut vm = Vm { data, pos: 0, op_at: 0, arena: Vec::new(), stack: Vec::new(), memo: HashMap::new() };
+    let mut vm =
+        Vm { data, pos: 0, op_at: 0, arena: Vec::new(), stack: Vec::new(), memo: HashMap::new() };
     let root = vm.run()?;
     Ok(vm.materialise(root, 0))
 }
@@ -167,7 +170,11 @@ impl Vm<'_> {
 
     /// Pop everything above the topmost MARK, and the MARK.
     fn pop_mark(&mut self) -> Result<Vec<usize>, PickleError> {
-        let m = self.stack.iter().rposition(|s| *s == Slot::Mark).ok_or_else(|| self.malformed("no MARK"))?;
+        let m = self
+            .stack
+            .iter()
+            .rposition(|s| *s == Slot::Mark)
+            .ok_or_else(|| self.malformed("no MARK"))?;
         let items = self.stack.split_off(m + 1);
         self.stack.pop();
         Ok(items.into_iter().map(|s| if let Slot::Node(i) = s { i } else { usize::MAX }).collect())
@@ -197,17 +204,18 @@ impl Vm<'_> {
 
     fn line(&mut self) -> Result<String, PickleError> {
         let rest = &self.data[self.pos..];
-        let n = rest.iter().position(|b| *b == b'\n').ok_or(PickleError::Truncated {
-            offset: self.data.len(),
-            what: "GLOBAL",
-        })?;
-        let s = String::from_utf8(rest[..n].to_vec()).map_err(|_| self.malformed("GLOBAL name is not UTF-8"))?;
+        let n = rest
+            .iter()
+            .position(|b| *b == b'\n')
+            .ok_or(PickleError::Truncated { offset: self.data.len(), what: "GLOBAL" })?;
+        let s = String::from_utf8(rest[..n].to_vec())
+            .map_err(|_| self.malformed("GLOBAL name is not UTF-8"))?;
         self.pos += n + 1;
         Ok(s)
     }
 
     fn set_items(&mut self, dict: usize, items: Vec<usize>) -> Result<(), PickleError> {
-        if items.len() % 2 != 0 {
+        if !items.len().is_multiple_of(2) {
             return Err(self.malformed("odd number of items for SETITEMS"));
         }
         let pairs: Vec<(usize, usize)> = items.chunks_exact(2).map(|c| (c[0], c[1])).collect();
@@ -237,7 +245,10 @@ impl Vm<'_> {
     }
 
     fn memo_get(&mut self, key: u64) -> Result<(), PickleError> {
-        let i = *self.memo.get(&key).ok_or_else(|| self.malformed(format!("memo key {key} was never stored")))?;
+        let i = *self
+            .memo
+            .get(&key)
+            .ok_or_else(|| self.malformed(format!("memo key {key} was never stored")))?;
         self.stack.push(Slot::Node(i));
         Ok(())
     }
@@ -318,10 +329,16 @@ impl Vm<'_> {
                 0x8a => {
                     let n = self.uint(1, "LONG1")? as usize;
                     if n > 8 {
-                        return Err(self.malformed(format!("LONG1 of {n} bytes does not fit in 64 bits")));
+                        return Err(
+                            self.malformed(format!("LONG1 of {n} bytes does not fit in 64 bits"))
+                        );
                     }
                     let b = self.take(n, "LONG1")?;
-                    let mut v = if b.last().is_some_and(|x| x & 0x80 != 0) { [0xffu8; 8] } else { [0u8; 8] };
+                    let mut v = if b.last().is_some_and(|x| x & 0x80 != 0) {
+                        [0xffu8; 8]
+                    } else {
+                        [0u8; 8]
+                    };
                     v[..n].copy_from_slice(b);
                     self.push(Node::Leaf(Value::Int(i64::from_le_bytes(v))));
                 }
@@ -362,7 +379,9 @@ impl Vm<'_> {
                 0x93 => {
                     let items = self.pop_n(2)?;
                     let (module, name) = match (&self.arena[items[0]], &self.arena[items[1]]) {
-                        (Node::Leaf(Value::Str(m)), Node::Leaf(Value::Str(n))) => (m.clone(), n.clone()),
+                        (Node::Leaf(Value::Str(m)), Node::Leaf(Value::Str(n))) => {
+                            (m.clone(), n.clone())
+                        }
                         _ => return Err(self.malformed("STACK_GLOBAL needs two strings")),
                     };
                     self.push(Node::Leaf(Value::Global { module, name }));
@@ -468,7 +487,10 @@ mod tests {
     fn truncated_and_bad_pickles_are_errors() {
         let p = sample();
         let e = load(&p[..p.len() - 1]).unwrap_err();
-        assert_eq!(e.to_string(), format!("truncated pickle: ended at byte {} inside an opcode", p.len() - 1));
+        assert_eq!(
+            e.to_string(),
+            format!("truncated pickle: ended at byte {} inside an opcode", p.len() - 1)
+        );
         let e = load(&p[..9]).unwrap_err();
         assert_eq!(e.to_string(), "truncated pickle: ended at byte 9 inside BINUNICODE");
         let e = load(&[0x80, 3, b'Z']).unwrap_err();

@@ -28,10 +28,12 @@ pub const CKPT_SIZE: u64 = 9_884_491;
 /// blake3 of `alexnet.ckpt`, observed on the file of the PyPI sdist.
 pub const CKPT_BLAKE3: &str = "cba30a61a68c28e084d81f6c702ccf47d438e10d972f2d25f5d9889361bbd509";
 /// blake3 of the converted safetensors file.
-pub const SAFETENSORS_BLAKE3: &str = "9e4ce3a17bd6e9ac6039d044f16515623088934fbcecaf82b4c6d5772bfa66b9";
+pub const SAFETENSORS_BLAKE3: &str =
+    "9e4ce3a17bd6e9ac6039d044f16515623088934fbcecaf82b4c6d5772bfa66b9";
 
 /// `(Cin, Cout, kernel)` of AlexNet's five convolutions (torchvision `features` 0, 3, 6, 8, 10).
-pub const CONV_SHAPES: [(usize, usize, usize); 5] = [(3, 64, 11), (64, 192, 5), (192, 384, 3), (384, 256, 3), (256, 256, 3)];
+pub const CONV_SHAPES: [(usize, usize, usize); 5] =
+    [(3, 64, 11), (64, 192, 5), (192, 384, 3), (384, 256, 3), (256, 256, 3)];
 /// torchvision indices of the convolutions inside `features`.
 pub const TORCH_INDEX: [usize; 5] = [0, 3, 6, 8, 10];
 
@@ -143,16 +145,20 @@ pub fn parse_ckpt(path: &Path, bytes: &[u8]) -> Result<AlexWeights, WeightsError
     for (i, &(cin, cout, k)) in CONV_SHAPES.iter().enumerate() {
         let at = format!("AlexNet_0/Conv_{i}/");
         let conv = key(&alex, &format!("Conv_{i}"), "AlexNet_0/")?;
-        let (shape, hwio) = ndarray_f32(&key(&conv, "kernel", &at)?).map_err(|m| invalid(format!("{at}kernel: {m}")))?;
-        expect_shape(&shape, &[k, k, cin, cout]).map_err(|m| invalid(format!("{at}kernel: {m}")))?;
-        let (shape, bias) = ndarray_f32(&key(&conv, "bias", &at)?).map_err(|m| invalid(format!("{at}bias: {m}")))?;
+        let (shape, hwio) = ndarray_f32(&key(&conv, "kernel", &at)?)
+            .map_err(|m| invalid(format!("{at}kernel: {m}")))?;
+        expect_shape(&shape, &[k, k, cin, cout])
+            .map_err(|m| invalid(format!("{at}kernel: {m}")))?;
+        let (shape, bias) = ndarray_f32(&key(&conv, "bias", &at)?)
+            .map_err(|m| invalid(format!("{at}bias: {m}")))?;
         expect_shape(&shape, &[cout]).map_err(|m| invalid(format!("{at}bias: {m}")))?;
         let mut weight = vec![0.0; hwio.len()];
         for ky in 0..k {
             for kx in 0..k {
                 for ci in 0..cin {
                     for co in 0..cout {
-                        weight[((co * cin + ci) * k + ky) * k + kx] = hwio[((ky * k + kx) * cin + ci) * cout + co];
+                        weight[((co * cin + ci) * k + ky) * k + kx] =
+                            hwio[((ky * k + kx) * cin + ci) * cout + co];
                     }
                 }
             }
@@ -162,8 +168,13 @@ pub fn parse_ckpt(path: &Path, bytes: &[u8]) -> Result<AlexWeights, WeightsError
     let mut lins = Vec::new();
     for (l, &(_, c, _)) in CONV_SHAPES.iter().enumerate() {
         let at = format!("NetLinLayer_{l}/Conv_0/");
-        let lin = key(&key(&root, &format!("NetLinLayer_{l}"), "")?, "Conv_0", &format!("NetLinLayer_{l}/"))?;
-        let (shape, w) = ndarray_f32(&key(&lin, "kernel", &at)?).map_err(|m| invalid(format!("{at}kernel: {m}")))?;
+        let lin = key(
+            &key(&root, &format!("NetLinLayer_{l}"), "")?,
+            "Conv_0",
+            &format!("NetLinLayer_{l}/"),
+        )?;
+        let (shape, w) = ndarray_f32(&key(&lin, "kernel", &at)?)
+            .map_err(|m| invalid(format!("{at}kernel: {m}")))?;
         expect_shape(&shape, &[1, 1, c, 1]).map_err(|m| invalid(format!("{at}kernel: {m}")))?;
         lins.push(w);
     }
@@ -184,10 +195,14 @@ fn ndarray_f32(v: &Value) -> Result<(Vec<usize>, Vec<f32>), String> {
         return Err("not a numpy array".into());
     };
     if global(callable) != "numpy.core.multiarray._reconstruct" {
-        return Err(format!("made by '{}', not numpy.core.multiarray._reconstruct", global(callable)));
+        return Err(format!(
+            "made by '{}', not numpy.core.multiarray._reconstruct",
+            global(callable)
+        ));
     }
     let Value::Tuple(st) = state.as_ref() else { return Err("array state is not a tuple".into()) };
-    let [_, Value::Tuple(shape), dtype, Value::Bool(fortran), Value::Bytes(raw)] = st.as_slice() else {
+    let [_, Value::Tuple(shape), dtype, Value::Bool(fortran), Value::Bytes(raw)] = st.as_slice()
+    else {
         return Err("array state is not (version, shape, dtype, fortran, data)".into());
     };
     let shape = shape
@@ -197,7 +212,9 @@ fn ndarray_f32(v: &Value) -> Result<(Vec<usize>, Vec<f32>), String> {
             _ => Err("shape entry is not a non-negative int".to_string()),
         })
         .collect::<Result<Vec<usize>, String>>()?;
-    let Value::Object { callable, args, state } = dtype else { return Err("dtype is not a numpy.dtype".into()) };
+    let Value::Object { callable, args, state } = dtype else {
+        return Err("dtype is not a numpy.dtype".into());
+    };
     let kind = match args.as_ref() {
         Value::Tuple(a) => a.first().cloned(),
         _ => None,
@@ -226,17 +243,23 @@ pub fn to_safetensors(w: &AlexWeights) -> Vec<u8> {
     let mut tensors: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
     for (i, c) in w.convs.iter().enumerate() {
         let t = TORCH_INDEX[i];
-        tensors.push((format!("features.{t}.weight"), vec![c.cout, c.cin, c.k, c.k], le(&c.weight)));
+        tensors.push((
+            format!("features.{t}.weight"),
+            vec![c.cout, c.cin, c.k, c.k],
+            le(&c.weight),
+        ));
         tensors.push((format!("features.{t}.bias"), vec![c.cout], le(&c.bias)));
     }
     for (l, lin) in w.lins.iter().enumerate() {
         tensors.push((format!("lin{l}.model.1.weight"), vec![1, lin.len(), 1, 1], le(lin)));
     }
     let views = tensors.iter().map(|(name, shape, data)| {
-        let view = TensorView::new(Dtype::F32, shape.clone(), data).expect("shape matches the data by construction");
+        let view = TensorView::new(Dtype::F32, shape.clone(), data)
+            .expect("shape matches the data by construction");
         (name.clone(), view)
     });
-    let meta = HashMap::from([("source".to_string(), format!("{SDIST_REQUIREMENT} {CKPT_SUFFIX}"))]);
+    let meta =
+        HashMap::from([("source".to_string(), format!("{SDIST_REQUIREMENT} {CKPT_SUFFIX}"))]);
     safetensors::serialize(views, Some(meta)).expect("f32 tensors always serialise")
 }
 
@@ -244,7 +267,9 @@ pub fn to_safetensors(w: &AlexWeights) -> Vec<u8> {
 pub fn load(path: &Path) -> Result<AlexWeights, WeightsError> {
     let bytes = match std::fs::read(path) {
         Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(WeightsError::Missing { path: path.into() }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(WeightsError::Missing { path: path.into() });
+        }
         Err(source) => return Err(WeightsError::Io { path: path.into(), source }),
     };
     let invalid = |msg: String| WeightsError::Invalid { path: path.into(), msg };
