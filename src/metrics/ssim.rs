@@ -15,7 +15,10 @@
 //!
 //! Without a mask (all ones) every weight `11 / m'` is 1 and this is the standard SSIM of
 //! Wang et al. with a valid-mode Gaussian window (as `dm_pix.ssim` computes it).
-//! Arithmetic is f64; channels are independent and computed one after another.
+//! Arithmetic is f64; the three channels are computed in parallel (rayon) and summed in
+//! channel order.
+
+use rayon::prelude::*;
 
 use super::{Error, Result, check_pair};
 use crate::image_io::Image;
@@ -52,8 +55,7 @@ pub fn ssim(a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<f64> {
     let blur = Blur::new(w, h, mask);
     let c1 = K1 * K1;
     let c2 = K2 * K2;
-    let mut total = 0.0f64;
-    for c in 0..3 {
+    let channel = |c: usize| -> f64 {
         let x: Vec<f64> = a.data.iter().skip(c).step_by(3).map(|v| *v as f64).collect();
         let y: Vec<f64> = b.data.iter().skip(c).step_by(3).map(|v| *v as f64).collect();
         let mu0 = blur.apply(&x);
@@ -61,6 +63,7 @@ pub fn ssim(a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<f64> {
         let e00 = blur.apply(&x.iter().map(|v| v * v).collect::<Vec<_>>());
         let e11 = blur.apply(&y.iter().map(|v| v * v).collect::<Vec<_>>());
         let e01 = blur.apply(&x.iter().zip(&y).map(|(p, q)| p * q).collect::<Vec<_>>());
+        let mut total = 0.0f64;
         for i in 0..mu0.len() {
             let (m0, m1) = (mu0[i], mu1[i]);
             let s00 = (e00[i] - m0 * m0).max(0.0);
@@ -71,7 +74,11 @@ pub fn ssim(a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<f64> {
             let denom = (m0 * m0 + m1 * m1 + c1) * (s00 + s11 + c2);
             total += numer / denom;
         }
-    }
+        total
+    };
+    // Channels in parallel, summed in channel order (deterministic).
+    let sums: Vec<f64> = (0..3).into_par_iter().map(channel).collect();
+    let total: f64 = sums.iter().sum();
     Ok(total / (3 * (w - WINDOW + 1) * (h - WINDOW + 1)) as f64)
 }
 
@@ -132,25 +139,32 @@ impl Blur {
         let (w, h) = (self.w, self.h);
         let (w1, h1) = (w - WINDOW + 1, h - WINDOW + 1);
         let zm: Vec<f64> = z.iter().zip(&self.mask).map(|(v, m)| v * m).collect();
+        // Loops run over k outside and x inside (vectorisable); each output still sums its
+        // taps in order k = 0..10. Where the mask sum is 0 the factor is 0, and so is the
+        // output.
         let mut pass1 = vec![0.0; h * w1];
         for y in 0..h {
             let row = &zm[y * w..(y + 1) * w];
-            for x in 0..w1 {
-                let s = self.scale1[y * w1 + x];
-                if s != 0.0 {
-                    let acc: f64 = (0..WINDOW).map(|k| self.f[k] * row[x + k]).sum();
-                    pass1[y * w1 + x] = acc * s;
+            let acc = &mut pass1[y * w1..(y + 1) * w1];
+            for (k, f) in self.f.iter().enumerate() {
+                for (a, v) in acc.iter_mut().zip(&row[k..k + w1]) {
+                    *a += f * v;
                 }
+            }
+            for (a, s) in acc.iter_mut().zip(&self.scale1[y * w1..(y + 1) * w1]) {
+                *a *= s;
             }
         }
         let mut out = vec![0.0; h1 * w1];
         for y in 0..h1 {
-            for x in 0..w1 {
-                let s = self.scale2[y * w1 + x];
-                if s != 0.0 {
-                    let acc: f64 = (0..WINDOW).map(|k| self.f[k] * pass1[(y + k) * w1 + x]).sum();
-                    out[y * w1 + x] = acc * s;
+            let acc = &mut out[y * w1..(y + 1) * w1];
+            for (k, f) in self.f.iter().enumerate() {
+                for (a, v) in acc.iter_mut().zip(&pass1[(y + k) * w1..(y + k + 1) * w1]) {
+                    *a += f * v;
                 }
+            }
+            for (a, s) in acc.iter_mut().zip(&self.scale2[y * w1..(y + 1) * w1]) {
+                *a *= s;
             }
         }
         out

@@ -19,7 +19,7 @@ pub const SCALE: [f32; 3] = [0.458, 0.448, 0.450];
 /// Strides and paddings of AlexNet's five convolutions.
 const STRIDE_PAD: [(usize, usize); 5] = [(4, 2), (1, 2), (1, 1), (1, 1), (1, 1)];
 /// Output positions per GEMM chunk.
-const CHUNK: usize = 256;
+const CHUNK: usize = 512;
 /// Smallest image side the network accepts (one position left after the second pooling).
 pub const MIN_SIDE: usize = 31;
 
