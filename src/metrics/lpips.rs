@@ -209,6 +209,7 @@ mod tests {
         let r = read("ex_ref.png");
         for (name, want) in [("ex_p0.png", 0.7219), ("ex_p1.png", 0.1376)] {
             let got = lpips.distance(&r, &read(name), None).unwrap();
+            eprintln!("lpips golden {name}: {got:.5} (reference {want})");
             assert!((got - want).abs() < 1e-3, "{name}: {got} vs {want}");
             let ones = vec![1.0; r.width * r.height];
             let masked = lpips.distance(&r, &read(name), Some(&ones)).unwrap();
