@@ -390,7 +390,7 @@ mod tests {
         // {"AlexNet_0": {}} as a protocol-3 pickle.
         let mut p = vec![0x80, 3, b'}', b'(', b'X', 9, 0, 0, 0];
         p.extend_from_slice(b"AlexNet_0");
-        p.extend_from_slice(&[b'}', b'u', b'.']);
+        p.extend_from_slice(b"}u.");
         let e = parse_ckpt(Path::new("a.ckpt"), &p).unwrap_err().to_string();
         assert_eq!(e, "a.ckpt: missing key 'AlexNet_0/Conv_0'");
         let e = parse_ckpt(Path::new("a.ckpt"), &p[..5]).unwrap_err().to_string();
