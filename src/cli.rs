@@ -57,6 +57,8 @@ pub enum Command {
     Pipeline(crate::pipeline::PipelineCommand),
     /// Print schema, row count, per-column statistics and first rows of a Parquet table.
     Inspect(crate::tables::inspect::InspectParams),
+    /// Validate a model or scene directory completely (every frame, every file).
+    Check(crate::tables::check::CheckParams),
 }
 
 /// `usplat4d import ...`
@@ -77,9 +79,33 @@ pub enum BenchCommand {
     Metrics(crate::metrics::bench::BenchMetricsParams),
 }
 
-/// Run one parsed command. Used by `main` and by the pipeline runner (in-process).
+impl Command {
+    /// The stage name used in logs and provenance.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Command::Synth(_) => "synth",
+            Command::Import(ImportCommand::Dycheck(_)) => "import dycheck",
+            Command::Render(_) => "render",
+            Command::Uncertainty(_) => "uncertainty",
+            Command::Keynodes(_) => "keynodes",
+            Command::Edges(_) => "edges",
+            Command::Segment(_) => "segment",
+            Command::Evaluate(_) => "evaluate",
+            Command::Lpips(_) => "lpips",
+            Command::Bench(_) => "bench",
+            Command::Pipeline(_) => "pipeline",
+            Command::Inspect(_) => "inspect",
+            Command::Check(_) => "check",
+        }
+    }
+}
+
+/// Run one parsed command inside a tracing span named after it. Used by `main` and by the
+/// pipeline runner (in-process).
 pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
     use crate::{datasets, metrics, pipeline, render, stages, tables};
+    let _span = tracing::info_span!("stage", name = command.name()).entered();
+    tracing::info!("start");
     match command {
         Command::Synth(p) => datasets::synth::run(&p, ctx),
         Command::Import(ImportCommand::Dycheck(p)) => datasets::dycheck::run_import(&p, ctx),
@@ -95,5 +121,6 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Metrics(p)) => metrics::bench::run(&p, ctx),
         Command::Pipeline(c) => pipeline::run_command(&c, ctx),
         Command::Inspect(p) => tables::inspect::run(&p, ctx),
+        Command::Check(p) => tables::check::run(&p, ctx),
     }
 }

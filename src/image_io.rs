@@ -12,20 +12,20 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// File system error.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The image could not be decoded or encoded.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Image {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: image::ImageError,
+        cause: image::ImageError,
     },
     /// A malformed `.npy` file or an unsupported dtype or shape.
     #[error("{}: {msg}", path.display())]
@@ -106,18 +106,23 @@ impl Image {
 /// channel count (grey+alpha becomes RGBA).
 pub fn read_png(path: &Path) -> Result<Image> {
     let img = image::ImageReader::open(path)
-        .map_err(|source| Error::Io { path: path.into(), source })?
+        .map_err(|source| Error::Io { path: path.into(), cause: source })?
         .with_guessed_format()
-        .map_err(|source| Error::Io { path: path.into(), source })?
+        .map_err(|source| Error::Io { path: path.into(), cause: source })?
         .decode()
-        .map_err(|source| Error::Image { path: path.into(), source })?;
+        .map_err(|source| Error::Image { path: path.into(), cause: source })?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let (channels, data) = match img.color().channel_count() {
         1 => (1, img.to_luma8().into_raw()),
         3 => (3, img.to_rgb8().into_raw()),
         _ => (4, img.to_rgba8().into_raw()),
     };
-    Ok(Image { width: w, height: h, channels, data: data.into_iter().map(|b| b as f32 / 255.0).collect() })
+    Ok(Image {
+        width: w,
+        height: h,
+        channels,
+        data: data.into_iter().map(|b| b as f32 / 255.0).collect(),
+    })
 }
 
 /// Write `img` as an 8-bit PNG (grey, RGB or RGBA by its channel count), atomically.
@@ -134,7 +139,7 @@ pub fn write_png(path: &Path, img: &Image) -> Result<()> {
         image::codecs::png::FilterType::Adaptive,
     )
     .write_image(&img.to_u8(), img.width as u32, img.height as u32, color)
-    .map_err(|source| Error::Image { path: path.into(), source })?;
+    .map_err(|source| Error::Image { path: path.into(), cause: source })?;
     write_atomic(path, &buf)
 }
 
@@ -142,7 +147,7 @@ use image::ImageEncoder;
 
 /// Write `bytes` to `path` through a temporary file in the same directory and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |source| Error::Io { path: path.into(), source };
+    let io = |source| Error::Io { path: path.into(), cause: source };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -157,10 +162,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Write a float32 array of `shape` (C order) as `.npy` version 1.0, atomically.
 pub fn write_npy_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<()> {
     if shape.iter().product::<usize>() != data.len() {
-        return Err(Error::Npy { path: path.into(), msg: format!("shape {shape:?} does not hold {} values", data.len()) });
+        return Err(Error::Npy {
+            path: path.into(),
+            msg: format!("shape {shape:?} does not hold {} values", data.len()),
+        });
     }
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let shape_str = if shape.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+    let shape_str =
+        if shape.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
     let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
     let total = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - total % 64) % 64));
@@ -181,13 +190,15 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
     let mut bytes = Vec::new();
     std::fs::File::open(path)
         .and_then(|mut f| f.read_to_end(&mut bytes))
-        .map_err(|source| Error::Io { path: path.into(), source })?;
+        .map_err(|source| Error::Io { path: path.into(), cause: source })?;
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(npy("not a .npy file (bad magic)".into()));
     }
     let (hlen, hstart) = match bytes[6] {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 if bytes.len() >= 12 => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
+        2 | 3 if bytes.len() >= 12 => {
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+        }
         v => return Err(npy(format!("unsupported .npy version {v}"))),
     };
     let header = bytes
@@ -221,12 +232,22 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
     let n: usize = shape.iter().product();
     let body = &bytes[hstart + hlen..];
     if body.len() < n * width {
-        return Err(npy(format!("truncated: shape {shape:?} needs {} bytes, file has {}", n * width, body.len())));
+        return Err(npy(format!(
+            "truncated: shape {shape:?} needs {} bytes, file has {}",
+            n * width,
+            body.len()
+        )));
     }
     let data = if width == 4 {
-        body[..n * 4].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+        body[..n * 4]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect()
     } else {
-        body[..n * 8].chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap_or([0; 8])) as f32).collect()
+        body[..n * 8]
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap_or([0; 8])) as f32)
+            .collect()
     };
     Ok((shape, data))
 }
@@ -252,7 +273,12 @@ mod tests {
     fn png_round_trip_is_8_bit_exact() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.png");
-        let img = Image { width: 3, height: 2, channels: 4, data: (0..24).map(|i| i as f32 / 23.0).collect() };
+        let img = Image {
+            width: 3,
+            height: 2,
+            channels: 4,
+            data: (0..24).map(|i| i as f32 / 23.0).collect(),
+        };
         write_png(&p, &img).unwrap();
         let back = read_png(&p).unwrap();
         assert_eq!(back, img.quantized());

@@ -103,7 +103,8 @@ impl Model {
         provenance: &Provenance,
     ) -> tables::Result<()> {
         tables::gaussians::write(&Self::gaussians_path(dir), gaussians, provenance)?;
-        let mut w = TrajectoryWriter::create(&Self::trajectories_path(dir), &gaussians.id, provenance)?;
+        let mut w =
+            TrajectoryWriter::create(&Self::trajectories_path(dir), &gaussians.id, provenance)?;
         for f in frames {
             w.write(&f?)?;
         }

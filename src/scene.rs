@@ -144,7 +144,9 @@ impl Scene {
                 return Err(tables::Error::Frame {
                     path,
                     frame: i as u64,
-                    msg: format!("training frames must be 0..T-1 without gaps; found frame {f} at position {i}"),
+                    msg: format!(
+                        "training frames must be 0..T-1 without gaps; found frame {f} at position {i}"
+                    ),
                 });
             }
         }

@@ -1,2 +1,11 @@
-//! Integration tests: one test binary that runs the real `usplat4d` CLI.
+//! End-to-end tests: one test binary that runs the real `usplat4d` CLI (STYLE.md 14; the
+//! harness is in `util`).
+
+mod util;
+
+mod bad_inputs;
+mod dycheck;
 mod evaluate;
+mod inspect;
+mod interop;
+mod synth;

@@ -177,8 +177,12 @@ pub struct Convergence {
 /// A Gaussian rasterizer.
 pub trait Renderer {
     /// Render one frame.
-    fn render(&self, camera: &RenderCamera, inputs: &SplatInputs, settings: &RenderSettings)
-    -> Result<RenderOutput, Error>;
+    fn render(
+        &self,
+        camera: &RenderCamera,
+        inputs: &SplatInputs,
+        settings: &RenderSettings,
+    ) -> Result<RenderOutput, Error>;
 
     /// Per-Gaussian convergence against a per-pixel pass map `[H, W]` (e.g.
     /// |rendered − ground truth|₁ < η_c).
@@ -196,7 +200,12 @@ pub trait Renderer {
 pub struct CpuRenderer;
 
 impl Renderer for CpuRenderer {
-    fn render(&self, _c: &RenderCamera, _i: &SplatInputs, _s: &RenderSettings) -> Result<RenderOutput, Error> {
+    fn render(
+        &self,
+        _c: &RenderCamera,
+        _i: &SplatInputs,
+        _s: &RenderSettings,
+    ) -> Result<RenderOutput, Error> {
         Err(Error::Settings("CPU renderer being written".into()))
     }
 

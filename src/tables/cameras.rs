@@ -7,7 +7,9 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow::array::{Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, StringArray, UInt32Array};
+use arrow::array::{
+    Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, StringArray, UInt32Array,
+};
 use arrow::datatypes::{DataType, Float32Type, Float64Type, Schema, SchemaRef, UInt32Type};
 
 use super::io::{Columns, Table, TableReader, batch, field, fixed_list, nullable, write_table};
@@ -106,13 +108,22 @@ pub fn read(path: &Path) -> Result<Vec<Camera>> {
     let mut seen = std::collections::HashMap::new();
     let mut out = Vec::with_capacity(b.num_rows());
     for i in 0..b.num_rows() {
-        let split = Split::parse(&split[i])
-            .ok_or_else(|| value_err("split", i, format!("unknown split '{}' (train or eval)", split[i])))?;
+        let split = Split::parse(&split[i]).ok_or_else(|| {
+            value_err("split", i, format!("unknown split '{}' (train or eval)", split[i]))
+        })?;
         if width[i] == 0 || height[i] == 0 {
-            return Err(value_err("width", i, format!("image size {}x{} is empty", width[i], height[i])));
+            return Err(value_err(
+                "width",
+                i,
+                format!("image size {}x{} is empty", width[i], height[i]),
+            ));
         }
         if fx[i] <= 0.0 || fy[i] <= 0.0 {
-            return Err(value_err("fx", i, format!("focal lengths must be positive, got {} {}", fx[i], fy[i])));
+            return Err(value_err(
+                "fx",
+                i,
+                format!("focal lengths must be positive, got {} {}", fx[i], fy[i]),
+            ));
         }
         if let Some(first) = seen.insert((camera[i].clone(), frame[i]), i) {
             return Err(value_err(
@@ -123,7 +134,11 @@ pub fn read(path: &Path) -> Result<Vec<Camera>> {
         }
         let distortion = if dist_arr.is_valid(i) {
             let v = dist_arr.value(i);
-            let v = v.as_any().downcast_ref::<Float64Array>().map(|a| a.values().to_vec()).unwrap_or_default();
+            let v = v
+                .as_any()
+                .downcast_ref::<Float64Array>()
+                .map(|a| a.values().to_vec())
+                .unwrap_or_default();
             validate::finite(path, "distortion", i as u64, &v)?;
             let mut d = [0.0; 5];
             d.copy_from_slice(&v[..5]);

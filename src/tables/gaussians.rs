@@ -8,7 +8,9 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow::array::{Array, ArrayRef, BooleanArray, Float32Array, ListArray, UInt8Array, UInt32Array};
+use arrow::array::{
+    Array, ArrayRef, BooleanArray, Float32Array, ListArray, UInt8Array, UInt32Array,
+};
 use arrow::buffer::OffsetBuffer;
 use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt8Type, UInt32Type};
 
@@ -46,7 +48,9 @@ pub fn write(path: &Path, g: &Gaussians, provenance: &Provenance) -> Result<()> 
     let offsets = OffsetBuffer::from_lengths(std::iter::repeat_n(k3, n));
     let item = Arc::new(arrow::datatypes::Field::new("item", DataType::Float32, false));
     let sh = ListArray::new(item, offsets, Arc::new(Float32Array::from(g.sh_rest.clone())), None);
-    let col = |k: usize, v: &Vec<[f32; 3]>| Arc::new(Float32Array::from_iter_values(v.iter().map(|s| s[k])));
+    let col = |k: usize, v: &Vec<[f32; 3]>| {
+        Arc::new(Float32Array::from_iter_values(v.iter().map(|s| s[k])))
+    };
     let cols: Vec<ArrayRef> = vec![
         Arc::new(UInt32Array::from(g.id.clone())),
         Arc::new(BooleanArray::from(g.dynamic.clone())),
@@ -105,14 +109,18 @@ pub fn read(path: &Path) -> Result<Gaussians> {
             path: path.into(),
             column: "sh_rest".into(),
             row: i as u64,
-            msg: format!("{} coefficients, degree {sh_degree} needs {k3}", offsets[i + 1] - offsets[i]),
+            msg: format!(
+                "{} coefficients, degree {sh_degree} needs {k3}",
+                offsets[i + 1] - offsets[i]
+            ),
         });
     }
-    let values = sh.values().as_any().downcast_ref::<Float32Array>().ok_or_else(|| Error::Schema {
-        path: path.into(),
-        table: GaussiansTable::NAME,
-        problems: "sh_rest items are not f32".into(),
-    })?;
+    let values =
+        sh.values().as_any().downcast_ref::<Float32Array>().ok_or_else(|| Error::Schema {
+            path: path.into(),
+            table: GaussiansTable::NAME,
+            problems: "sh_rest items are not f32".into(),
+        })?;
     let start = offsets[0] as usize;
     let sh_rest = values.values()[start..start + k3 * sh.len()].to_vec();
     validate::finite(path, "sh_rest", 0, &sh_rest)?;

@@ -75,17 +75,32 @@ pub struct TableWriter {
 impl TableWriter {
     /// Start writing table `T` to `path` (created or replaced on [`TableWriter::finish`]).
     pub fn create<T: Table>(path: &Path, provenance: &Provenance) -> Result<Self> {
-        let io = |source| Error::Io { path: path.to_path_buf(), source };
+        Self::create_named(path, T::NAME, T::VERSION, T::schema(), provenance)
+    }
+
+    /// Start writing a table given by name, version and schema (for generic tools).
+    pub fn create_named(
+        path: &Path,
+        name: &str,
+        version: u32,
+        schema: SchemaRef,
+        provenance: &Provenance,
+    ) -> Result<Self> {
+        let io = |source| Error::Io { path: path.to_path_buf(), cause: source };
         let dir = match path.parent() {
             Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
             _ => PathBuf::from("."),
         };
         std::fs::create_dir_all(&dir).map_err(io)?;
-        let tmp = tempfile::Builder::new().prefix(".tmp-").suffix(".parquet").tempfile_in(&dir).map_err(io)?;
+        let tmp = tempfile::Builder::new()
+            .prefix(".tmp-")
+            .suffix(".parquet")
+            .tempfile_in(&dir)
+            .map_err(io)?;
         let file = tmp.reopen().map_err(io)?;
         let kv = vec![
-            KeyValue::new(KEY_TABLE.into(), T::NAME.to_string()),
-            KeyValue::new(KEY_SCHEMA_VERSION.into(), T::VERSION.to_string()),
+            KeyValue::new(KEY_TABLE.into(), name.to_string()),
+            KeyValue::new(KEY_SCHEMA_VERSION.into(), version.to_string()),
             KeyValue::new(KEY_STAGE.into(), provenance.stage.clone()),
             KeyValue::new(KEY_TOOL_VERSION.into(), crate::VERSION.to_string()),
             KeyValue::new(KEY_PARAMS.into(), provenance.params.to_string()),
@@ -97,15 +112,14 @@ impl TableWriter {
             .set_max_row_group_bytes(None)
             .set_created_by(format!("usplat4d {}", crate::VERSION))
             .build();
-        let schema = T::schema();
         let writer = ArrowWriter::try_new(file, schema.clone(), Some(props))
-            .map_err(|source| Error::Parquet { path: path.to_path_buf(), source })?;
+            .map_err(|source| Error::Parquet { path: path.to_path_buf(), cause: source })?;
         Ok(TableWriter { path: path.to_path_buf(), tmp, writer, schema })
     }
 
     /// Write `batch` as one row group (one frame of a per-frame table).
     pub fn write_group(&mut self, batch: &RecordBatch) -> Result<()> {
-        let pq = |source| Error::Parquet { path: self.path.clone(), source };
+        let pq = |source| Error::Parquet { path: self.path.clone(), cause: source };
         if batch.schema().fields() != self.schema.fields() {
             return Err(Error::Schema {
                 path: self.path.clone(),
@@ -121,9 +135,9 @@ impl TableWriter {
     /// Close the file and rename it into place.
     pub fn finish(self) -> Result<()> {
         let path = self.path;
-        self.writer.close().map_err(|source| Error::Parquet { path: path.clone(), source })?;
-        self.tmp.as_file().sync_all().map_err(|source| Error::Io { path: path.clone(), source })?;
-        self.tmp.persist(&path).map_err(|e| Error::Io { path: path.clone(), source: e.error })?;
+        self.writer.close().map_err(|source| Error::Parquet { path: path.clone(), cause: source })?;
+        self.tmp.as_file().sync_all().map_err(|source| Error::Io { path: path.clone(), cause: source })?;
+        self.tmp.persist(&path).map_err(|e| Error::Io { path: path.clone(), cause: e.error })?;
         Ok(())
     }
 }
@@ -171,7 +185,8 @@ pub struct TableReader<R: Source = File> {
 impl TableReader<File> {
     /// Open `path` as table `T`, validating the whole schema.
     pub fn open<T: Table>(path: &Path) -> Result<Self> {
-        let file = File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+        let file =
+            File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
         Self::new::<T>(path, file)
     }
 }
@@ -180,7 +195,7 @@ impl<R: Source> TableReader<R> {
     /// Read table `T` from `source`; `path` names it in errors.
     pub fn new<T: Table>(path: &Path, source: R) -> Result<Self> {
         let meta = ArrowReaderMetadata::load(&source, Default::default())
-            .map_err(|source| Error::Parquet { path: path.to_path_buf(), source })?;
+            .map_err(|source| Error::Parquet { path: path.to_path_buf(), cause: source })?;
         let problems = schema_problems(&T::schema(), meta.schema());
         let kv_table = meta
             .metadata()
@@ -195,7 +210,11 @@ impl<R: Source> TableReader<R> {
             problems.insert(0, format!("it is a '{name}' table"));
         }
         if !problems.is_empty() {
-            return Err(Error::Schema { path: path.to_path_buf(), table: T::NAME, problems: problems.join("; ") });
+            return Err(Error::Schema {
+                path: path.to_path_buf(),
+                table: T::NAME,
+                problems: problems.join("; "),
+            });
         }
         Ok(TableReader { path: path.to_path_buf(), source, meta })
     }
@@ -236,9 +255,11 @@ impl<R: Source> TableReader<R> {
     }
 
     fn read(&self, groups: Option<Vec<usize>>) -> Result<RecordBatch> {
-        let pq = |source| Error::Parquet { path: self.path.clone(), source };
-        let src = self.source.dup().map_err(|source| Error::Io { path: self.path.clone(), source })?;
-        let mut builder = ParquetRecordBatchReaderBuilder::new_with_metadata(src, self.meta.clone());
+        let pq = |source| Error::Parquet { path: self.path.clone(), cause: source };
+        let src =
+            self.source.dup().map_err(|source| Error::Io { path: self.path.clone(), cause: source })?;
+        let mut builder =
+            ParquetRecordBatchReaderBuilder::new_with_metadata(src, self.meta.clone());
         if let Some(g) = groups {
             builder = builder.with_row_groups(g);
         }
@@ -246,10 +267,10 @@ impl<R: Source> TableReader<R> {
         let schema = arrow::array::RecordBatchReader::schema(&reader);
         let mut batches = Vec::new();
         for b in reader {
-            batches.push(b.map_err(|source| Error::Arrow { path: self.path.clone(), source })?);
+            batches.push(b.map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })?);
         }
         arrow::compute::concat_batches(&schema, &batches)
-            .map_err(|source| Error::Arrow { path: self.path.clone(), source })
+            .map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })
     }
 
     /// All rows as one batch.
@@ -275,7 +296,11 @@ pub fn schema_problems(expected: &SchemaRef, found: &SchemaRef) -> Vec<String> {
     let mut problems = Vec::new();
     for f in expected.fields() {
         match found.field_with_name(f.name()) {
-            Err(_) => problems.push(format!("missing column '{}' ({})", f.name(), type_name(f.data_type()))),
+            Err(_) => problems.push(format!(
+                "missing column '{}' ({})",
+                f.name(),
+                type_name(f.data_type())
+            )),
             Ok(g) if !same_type(f.data_type(), g.data_type()) => problems.push(format!(
                 "column '{}' has type {}, expected {}",
                 f.name(),
@@ -372,7 +397,10 @@ impl<'a> Columns<'a> {
     }
 
     /// A non-null primitive column's values.
-    pub fn values<P: arrow::datatypes::ArrowPrimitiveType>(&self, name: &str) -> Result<&'a [P::Native]> {
+    pub fn values<P: arrow::datatypes::ArrowPrimitiveType>(
+        &self,
+        name: &str,
+    ) -> Result<&'a [P::Native]> {
         let a = self.get::<arrow::array::PrimitiveArray<P>>(name)?;
         self.no_nulls(name, a)?;
         Ok(a.values())
@@ -411,13 +439,14 @@ impl<'a> Columns<'a> {
     pub fn fixed_f64(&self, name: &str, n: usize) -> Result<&'a [f64]> {
         let a = self.get::<arrow::array::FixedSizeListArray>(name)?;
         self.no_nulls(name, a)?;
-        let v = a.values().as_any().downcast_ref::<arrow::array::Float64Array>().ok_or_else(|| {
-            Error::Schema {
-                path: self.path.to_path_buf(),
-                table: "(reader)",
-                problems: format!("column '{name}' items are not f64"),
-            }
-        })?;
+        let v =
+            a.values().as_any().downcast_ref::<arrow::array::Float64Array>().ok_or_else(|| {
+                Error::Schema {
+                    path: self.path.to_path_buf(),
+                    table: "(reader)",
+                    problems: format!("column '{name}' items are not f64"),
+                }
+            })?;
         let off = a.offset() * n;
         Ok(&v.values()[off..off + a.len() * n])
     }

@@ -8,6 +8,7 @@
 //! where it applies the column and the row or frame.
 
 pub mod cameras;
+pub mod check;
 pub mod edges;
 pub mod gaussians;
 pub mod inspect;
@@ -21,7 +22,12 @@ pub mod trajectories;
 pub mod uncertainty;
 pub mod validate;
 
+#[cfg(test)]
+mod tests;
+
 use std::path::PathBuf;
+
+use arrow::datatypes::SchemaRef;
 
 pub use io::{Provenance, Table, TableReader, TableWriter};
 
@@ -30,28 +36,28 @@ pub use io::{Provenance, Table, TableReader, TableWriter};
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be opened, created, written or renamed.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The Parquet layer failed (not a Parquet file, truncated, corrupt).
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Parquet {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: parquet::errors::ParquetError,
+        cause: parquet::errors::ParquetError,
     },
     /// The Arrow layer failed while assembling or decoding a batch.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Arrow {
         /// The file.
         path: PathBuf,
         /// The underlying error.
-        source: arrow::error::ArrowError,
+        cause: arrow::error::ArrowError,
     },
     /// The file's schema differs from the table's; lists every mismatch.
     #[error("{}: not a valid '{table}' table: {problems}", path.display())]
@@ -97,3 +103,28 @@ pub enum Error {
 
 /// Result alias of this module.
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// One table kind: name, schema version and schema.
+#[derive(Debug, Clone)]
+pub struct TableKind {
+    /// Table name (file stem, doc name).
+    pub name: &'static str,
+    /// Schema version.
+    pub version: u32,
+    /// Arrow schema.
+    pub schema: SchemaRef,
+}
+
+/// Every table kind: the documentation test and the interop tests walk it.
+pub fn registry() -> Vec<TableKind> {
+    fn entry<T: Table>() -> TableKind {
+        TableKind { name: T::NAME, version: T::VERSION, schema: T::schema() }
+    }
+    vec![
+        entry::<cameras::CamerasTable>(),
+        entry::<gaussians::GaussiansTable>(),
+        entry::<trajectories::TrajectoriesTable>(),
+        entry::<tracks_2d::Tracks2dTable>(),
+        entry::<tracks_3d::Tracks3dTable>(),
+    ]
+}

@@ -38,8 +38,12 @@ impl Table for TrajectoriesTable {
 /// The row group of one frame; `ids` is the canonical Gaussian order.
 pub fn frame_batch(ids: &[u32], s: &FrameState) -> RecordBatch {
     let n = ids.len();
-    let p = |k: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(s.position.iter().map(|v| v[k]))) };
-    let q = |k: usize| -> ArrayRef { Arc::new(Float32Array::from_iter_values(s.rotation.iter().map(|v| v[k]))) };
+    let p = |k: usize| -> ArrayRef {
+        Arc::new(Float32Array::from_iter_values(s.position.iter().map(|v| v[k])))
+    };
+    let q = |k: usize| -> ArrayRef {
+        Arc::new(Float32Array::from_iter_values(s.rotation.iter().map(|v| v[k])))
+    };
     batch::<TrajectoriesTable>(vec![
         Arc::new(UInt32Array::from(vec![s.frame; n])),
         Arc::new(UInt32Array::from(ids.to_vec())),
@@ -63,7 +67,11 @@ pub struct TrajectoryWriter {
 impl TrajectoryWriter {
     /// Start writing to `path` for Gaussians `ids` (canonical order).
     pub fn create(path: &Path, ids: &[u32], provenance: &Provenance) -> Result<Self> {
-        Ok(TrajectoryWriter { inner: TableWriter::create::<TrajectoriesTable>(path, provenance)?, ids: ids.to_vec(), next: 0 })
+        Ok(TrajectoryWriter {
+            inner: TableWriter::create::<TrajectoriesTable>(path, provenance)?,
+            ids: ids.to_vec(),
+            next: 0,
+        })
     }
 
     /// Append the next frame (frames must come as 0, 1, 2, ...).
@@ -97,7 +105,11 @@ impl TrajectoryReader {
                 return Err(Error::Frame {
                     path: path.into(),
                     frame: g as u64,
-                    msg: format!("{} rows, expected one per Gaussian ({})", inner.row_group_rows(g), ids.len()),
+                    msg: format!(
+                        "{} rows, expected one per Gaussian ({})",
+                        inner.row_group_rows(g),
+                        ids.len()
+                    ),
                 });
             }
         }

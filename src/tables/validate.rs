@@ -10,7 +10,12 @@ use super::{Error, Result};
 pub const QUAT_NORM_TOL: f32 = 1e-3;
 
 /// Every value of `column` is finite; `row0` is the file row of `values[0]`.
-pub fn finite<F: Copy + Into<f64>>(path: &Path, column: &str, row0: u64, values: &[F]) -> Result<()> {
+pub fn finite<F: Copy + Into<f64>>(
+    path: &Path,
+    column: &str,
+    row0: u64,
+    values: &[F],
+) -> Result<()> {
     match values.iter().position(|v| !(*v).into().is_finite()) {
         Some(i) => Err(Error::Value {
             path: path.to_path_buf(),
@@ -23,8 +28,15 @@ pub fn finite<F: Copy + Into<f64>>(path: &Path, column: &str, row0: u64, values:
 }
 
 /// Every value lies in `[lo, hi]`.
-pub fn in_range(path: &Path, column: &str, row0: u64, values: &[f32], lo: f32, hi: f32) -> Result<()> {
-    match values.iter().position(|v| !(*v >= lo && *v <= hi)) {
+pub fn in_range(
+    path: &Path,
+    column: &str,
+    row0: u64,
+    values: &[f32],
+    lo: f32,
+    hi: f32,
+) -> Result<()> {
+    match values.iter().position(|v| !(lo..=hi).contains(v)) {
         Some(i) => Err(Error::Value {
             path: path.to_path_buf(),
             column: column.to_string(),
@@ -36,10 +48,17 @@ pub fn in_range(path: &Path, column: &str, row0: u64, values: &[f32], lo: f32, h
 }
 
 /// Quaternions `(w, x, y, z)` given as four columns are normalised within [`QUAT_NORM_TOL`].
-pub fn unit_quaternions(path: &Path, row0: u64, w: &[f32], x: &[f32], y: &[f32], z: &[f32]) -> Result<()> {
+pub fn unit_quaternions(
+    path: &Path,
+    row0: u64,
+    w: &[f32],
+    x: &[f32],
+    y: &[f32],
+    z: &[f32],
+) -> Result<()> {
     for i in 0..w.len() {
         let n = (w[i] * w[i] + x[i] * x[i] + y[i] * y[i] + z[i] * z[i]).sqrt();
-        if !((n - 1.0).abs() <= QUAT_NORM_TOL) {
+        if n.is_nan() || (n - 1.0).abs() > QUAT_NORM_TOL {
             return Err(Error::Value {
                 path: path.to_path_buf(),
                 column: "qw,qx,qy,qz".into(),

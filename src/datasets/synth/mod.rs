@@ -1,0 +1,558 @@
+//! `usplat4d synth`: the synthetic extreme-view benchmark rendered from an animated glTF
+//! model with our own CPU rasterizer, with exact ground truth.
+//!
+//! Pipeline: [`asset::load`] reads the glTF (nodes, skins, animations, morph targets,
+//! materials, textures); each benchmark frame t maps to an animation time
+//! ([`anim::frame_time`], zig-zag when the clip is short), is posed ([`anim::pose`],
+//! [`skin::pose_vertices`]) and normalised (centre of the bounding box over all frames at
+//! the origin, box diagonal 2, then [`cameras::Placement`] into the camera world). Pass 1
+//! finds that box; pass 2 writes the oracle model (`oracle/`, N area-uniform surface
+//! Gaussians) and `tracks_3d`; pass 3 renders every training frame (and `tracks_2d` by depth
+//! test), then every eval view: RGBA, z-depth `.npy` and mask per image, written and
+//! dropped one frame at a time ([`raster`], [`shade`]). The camera protocol is in
+//! [`cameras`]; `--layout dycheck` adds covisibility masks ([`covis`]) and the DyCheck
+//! folder layout.
+
+mod anim;
+mod asset;
+mod cameras;
+mod covis;
+mod raster;
+mod shade;
+mod skin;
+mod surface;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use glam::{Mat4, Vec3};
+use rayon::prelude::*;
+
+pub use shade::TextureMode;
+
+use crate::context::Context;
+use crate::datasets::dycheck;
+use crate::image_io::{self, write_npy_f32, write_png};
+use crate::model::{FrameState, Gaussians, Model};
+use crate::scene::{Camera, Scene, Split};
+use crate::tables::tracks_2d::{Tracks2dFrame, Tracks2dWriter};
+use crate::tables::tracks_3d::Tracks3dWriter;
+use crate::tables::{self, Provenance};
+
+/// Output layouts of `synth`.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum Layout {
+    /// The scene directory only.
+    Scene,
+    /// The scene directory plus the DyCheck iPhone layout in `SCENE_DIR/dycheck/`, with
+    /// covisibility masks as the eval cameras' masks.
+    Dycheck,
+}
+
+/// Parameters of `usplat4d synth`.
+#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct SynthParams {
+    /// The animated glTF model (`.glb`, or `.gltf` with embedded or external buffers).
+    #[arg(long, help_heading = "Input")]
+    pub gltf: PathBuf,
+    /// Animation to play (default: the first one).
+    #[arg(long, help_heading = "Input")]
+    #[serde(default)]
+    pub animation: Option<String>,
+    /// Output scene directory.
+    #[arg(long, help_heading = "Output")]
+    pub out: PathBuf,
+    /// Number of frames T of the training video (orbit protocol).
+    #[arg(long, default_value_t = 121, help_heading = "Protocol")]
+    #[serde(default = "defaults::frames")]
+    pub frames: u32,
+    /// Number of cameras C on the circle (camera 0 trains, the others evaluate).
+    #[arg(long, default_value_t = 12, help_heading = "Protocol")]
+    #[serde(default = "defaults::cameras")]
+    pub cameras: u32,
+    /// Counter-clockwise rotation of all cameras per frame, degrees.
+    #[arg(long, default_value_t = 3.0, help_heading = "Protocol")]
+    #[serde(default = "defaults::deg_per_frame")]
+    pub deg_per_frame: f64,
+    /// Camera elevation above the horizontal, degrees.
+    #[arg(long, default_value_t = 35.0, help_heading = "Protocol")]
+    #[serde(default = "defaults::elevation_deg")]
+    pub elevation_deg: f64,
+    /// Image width, pixels.
+    #[arg(long, default_value_t = 512, help_heading = "Protocol")]
+    #[serde(default = "defaults::size")]
+    pub width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = 512, help_heading = "Protocol")]
+    #[serde(default = "defaults::size")]
+    pub height: u32,
+    /// Rate at which the animation is sampled, frames per second.
+    #[arg(long, default_value_t = 30.0, help_heading = "Protocol")]
+    #[serde(default = "defaults::fps")]
+    pub fps: f64,
+    /// Supersampling per pixel side (2 → 2x2 samples).
+    #[arg(long, default_value_t = 2, help_heading = "Rendering")]
+    #[serde(default = "defaults::supersample")]
+    pub supersample: u32,
+    /// Procedural texture: on untextured materials (auto), everywhere, or never.
+    #[arg(long, value_enum, default_value_t = TextureMode::Auto, help_heading = "Rendering")]
+    #[serde(default = "defaults::texture")]
+    pub texture: TextureMode,
+    /// Number of oracle Gaussians N.
+    #[arg(long, default_value_t = 20000, help_heading = "Ground truth")]
+    #[serde(default = "defaults::gaussians")]
+    pub gaussians: u32,
+    /// Number of ground-truth tracks M.
+    #[arg(long, default_value_t = 1024, help_heading = "Ground truth")]
+    #[serde(default = "defaults::tracks")]
+    pub tracks: u32,
+    /// Seed of the surface sampling.
+    #[arg(long, default_value_t = 0, help_heading = "Ground truth")]
+    #[serde(default)]
+    pub seed: u64,
+    /// Render along a real camera path instead of the orbit: `dycheck:DIR`.
+    #[arg(long, help_heading = "Protocol")]
+    #[serde(default)]
+    pub trajectory: Option<String>,
+    /// Downscale factor of the DyCheck cameras of `--trajectory`.
+    #[arg(long, default_value_t = 2, help_heading = "Protocol")]
+    #[serde(default = "defaults::trajectory_factor")]
+    pub trajectory_factor: u32,
+    /// Output layout.
+    #[arg(long, value_enum, default_value_t = Layout::Scene, help_heading = "Output")]
+    #[serde(default = "defaults::layout")]
+    pub layout: Layout,
+}
+
+mod defaults {
+    pub fn frames() -> u32 {
+        121
+    }
+    pub fn cameras() -> u32 {
+        12
+    }
+    pub fn deg_per_frame() -> f64 {
+        3.0
+    }
+    pub fn elevation_deg() -> f64 {
+        35.0
+    }
+    pub fn size() -> u32 {
+        512
+    }
+    pub fn fps() -> f64 {
+        30.0
+    }
+    pub fn supersample() -> u32 {
+        2
+    }
+    pub fn texture() -> super::TextureMode {
+        super::TextureMode::Auto
+    }
+    pub fn gaussians() -> u32 {
+        20000
+    }
+    pub fn tracks() -> u32 {
+        1024
+    }
+    pub fn trajectory_factor() -> u32 {
+        2
+    }
+    pub fn layout() -> super::Layout {
+        super::Layout::Scene
+    }
+}
+
+/// Errors of the synthetic benchmark generator; each names the file it concerns.
+#[non_exhaustive]
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The model file cannot be read.
+    #[error("{}: {cause}", path.display())]
+    Io {
+        /// The glTF file.
+        path: PathBuf,
+        /// The underlying error.
+        cause: std::io::Error,
+    },
+    /// The glTF is truncated, malformed or unsupported.
+    #[error("{}: not a usable glTF file: {msg}", path.display())]
+    Malformed {
+        /// The glTF file.
+        path: PathBuf,
+        /// What is wrong.
+        msg: String,
+    },
+    /// A buffer or texture image the glTF references is missing.
+    #[error("{}: {what} refers to the missing file {}", path.display(), file.display())]
+    MissingFile {
+        /// The glTF file.
+        path: PathBuf,
+        /// Which object refers to it.
+        what: String,
+        /// The missing file.
+        file: PathBuf,
+    },
+    /// `--animation` names no animation of the file.
+    #[error("{}: no animation named '{name}' (available: {available})", path.display())]
+    UnknownAnimation {
+        /// The glTF file.
+        path: PathBuf,
+        /// The requested name.
+        name: String,
+        /// The available names.
+        available: String,
+    },
+    /// The posed model has no extent or no area.
+    #[error("{}: the model is degenerate: {msg}", path.display())]
+    Degenerate {
+        /// The glTF file.
+        path: PathBuf,
+        /// What is wrong.
+        msg: String,
+    },
+    /// A parameter is out of range.
+    #[error("--{flag}: {msg}")]
+    Param {
+        /// The flag.
+        flag: &'static str,
+        /// What is wrong.
+        msg: String,
+    },
+    /// Writing a table failed.
+    #[error(transparent)]
+    Table(#[from] tables::Error),
+    /// Writing an image failed.
+    #[error(transparent)]
+    Image(#[from] image_io::Error),
+    /// Reading a DyCheck camera path or writing the DyCheck layout failed.
+    #[error(transparent)]
+    Dycheck(#[from] dycheck::Error),
+}
+
+/// What [`generate`] produced.
+#[derive(Debug, Clone)]
+pub struct Summary {
+    /// Training frames T.
+    pub frames: usize,
+    /// Images rendered (train and eval).
+    pub images: usize,
+    /// Triangles of the model.
+    pub triangles: usize,
+}
+
+/// Run the stage.
+pub fn run(p: &SynthParams, ctx: &Context) -> anyhow::Result<()> {
+    let t0 = std::time::Instant::now();
+    let s = generate(p, ctx)?;
+    ctx.info(format!(
+        "synth: {} images ({} frames, {} triangles) in {}, {:.1} s",
+        s.images,
+        s.frames,
+        s.triangles,
+        p.out.display(),
+        t0.elapsed().as_secs_f64()
+    ));
+    Ok(())
+}
+
+fn check(p: &SynthParams) -> Result<(), Error> {
+    let param = |flag, msg: &str| Err(Error::Param { flag, msg: msg.to_string() });
+    if p.frames == 0 {
+        return param("frames", "must be at least 1");
+    }
+    if p.cameras == 0 {
+        return param("cameras", "must be at least 1");
+    }
+    if p.width == 0 || p.height == 0 || p.width > 16384 || p.height > 16384 {
+        return param("width", "width and height must be in 1..=16384");
+    }
+    if !(1..=8).contains(&p.supersample) {
+        return param("supersample", "must be in 1..=8");
+    }
+    if !(p.fps > 0.0 && p.fps.is_finite()) {
+        return param("fps", "must be positive");
+    }
+    if p.elevation_deg.is_nan() || p.elevation_deg.abs() >= 90.0 || !p.deg_per_frame.is_finite() {
+        return param(
+            "elevation-deg",
+            "elevation must be inside (-90, 90) and the rotation finite",
+        );
+    }
+    if p.gaussians == 0 {
+        return param("gaussians", "must be at least 1");
+    }
+    Ok(())
+}
+
+/// The scene's cameras: the orbit protocol, or a DyCheck path with scene-layout paths.
+fn protocol_cameras(p: &SynthParams) -> Result<(Vec<Camera>, bool), Error> {
+    match &p.trajectory {
+        None => Ok((
+            cameras::orbit(
+                p.frames,
+                p.cameras,
+                p.deg_per_frame,
+                p.elevation_deg,
+                p.width,
+                p.height,
+            ),
+            false,
+        )),
+        Some(t) => {
+            let dir = t.strip_prefix("dycheck:").ok_or_else(|| Error::Param {
+                flag: "trajectory",
+                msg: format!("'{t}' is not of the form dycheck:DIR"),
+            })?;
+            let mut cams = dycheck::read_camera_path(Path::new(dir), p.trajectory_factor)?;
+            for c in &mut cams {
+                let (rgb, depth, mask) = cameras::paths(&c.camera, c.frame);
+                (c.image_path, c.depth_path, c.mask_path) = (rgb, Some(depth), Some(mask));
+                c.distortion = None;
+            }
+            Ok((cams, true))
+        }
+    }
+}
+
+/// Generate the benchmark scene of `p` (see the module doc).
+pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
+    check(p)?;
+    let asset = asset::load(&p.gltf)?;
+    let anim = asset.animation(p.animation.as_deref())?;
+    if anim.is_none() {
+        ctx.warn(format!(
+            "{}: the file has no animation; rendering a static scene",
+            p.gltf.display()
+        ));
+    }
+    if asset.parts.iter().all(|x| x.skin.is_none()) {
+        ctx.warn(format!(
+            "{}: no skinned mesh; only node and morph animation moves the model",
+            p.gltf.display()
+        ));
+    }
+    let shader = shade::Shader::new(&asset, p.texture);
+    let (mut cams, on_path) = protocol_cameras(p)?;
+    let num_train = cams
+        .iter()
+        .filter(|c| c.split == Split::Train)
+        .map(|c| c.frame as usize + 1)
+        .max()
+        .unwrap_or(0);
+    if num_train == 0 {
+        return Err(Error::Param {
+            flag: "trajectory",
+            msg: "the camera path has no training camera".into(),
+        });
+    }
+    let last_frame = cams.iter().map(|c| c.frame).max().unwrap_or(0);
+    let times: Vec<f32> = (0..=last_frame)
+        .map(|t| anim.map(|a| anim::frame_time(t, p.fps, a.start, a.end)).unwrap_or(0.0))
+        .collect();
+
+    // Pass 1: bounding box over all frames, glTF world space.
+    let bar = ctx.progress(times.len() as u64, "bounds");
+    let (lo, hi) = times
+        .par_iter()
+        .map(|&t| {
+            let v = skin::pose_vertices(&asset, &anim::pose(&asset, anim, t));
+            bar.inc(1);
+            v.iter().fold((Vec3::MAX, Vec3::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)))
+        })
+        .reduce(|| (Vec3::MAX, Vec3::MIN), |a, b| (a.0.min(b.0), a.1.max(b.1)));
+    bar.finish_and_clear();
+    let diag = (hi - lo).length();
+    if !(diag > 0.0 && diag.is_finite()) {
+        return Err(Error::Degenerate {
+            path: p.gltf.clone(),
+            msg: format!("bounding box diagonal {diag}"),
+        });
+    }
+    let centre = (lo + hi) / 2.0;
+    let norm_scale = 2.0 / diag;
+    let placement =
+        if on_path { cameras::place_on_path(&cams) } else { cameras::Placement::IDENTITY };
+    let to_world = placement.matrix().as_mat4()
+        * Mat4::from_scale(Vec3::splat(norm_scale))
+        * Mat4::from_translation(-centre);
+    let posed = |t: usize| -> Vec<Vec3> {
+        let v = skin::pose_vertices(&asset, &anim::pose(&asset, anim, times[t]));
+        v.into_iter().map(|p| to_world.transform_point3(p)).collect()
+    };
+    let tris = &asset.mesh.tris;
+
+    // Surface samples on frame 0.
+    let pos0 = posed(0);
+    let gauss_pts =
+        surface::sample_surface(&pos0, tris, p.gaussians as usize, &mut surface::Rng::new(p.seed));
+    let track_pts = surface::sample_surface(
+        &pos0,
+        tris,
+        p.tracks as usize,
+        &mut surface::Rng::new(surface::splitmix64(!p.seed)),
+    );
+    if gauss_pts.is_empty() {
+        return Err(Error::Degenerate {
+            path: p.gltf.clone(),
+            msg: "the surface has zero area at frame 0".into(),
+        });
+    }
+    let spacing = (surface::total_area(&pos0, tris) / p.gaussians as f64).sqrt() as f32;
+    let n = gauss_pts.len();
+    let gaussians = Gaussians {
+        id: (0..n as u32).collect(),
+        dynamic: vec![true; n],
+        scale: vec![[0.5 * spacing, 0.5 * spacing, 0.05 * spacing]; n],
+        opacity: vec![0.95; n],
+        color: gauss_pts
+            .iter()
+            .map(|s| shader.color(s.tri, s.b).to_array().map(shade::linear_to_srgb))
+            .collect(),
+        sh_degree: 0,
+        sh_rest: Vec::new(),
+    };
+
+    // Pass 2: oracle model and tracks_3d.
+    let prov = Provenance::new("synth", p);
+    std::fs::create_dir_all(&p.out)
+        .map_err(|source| image_io::Error::Io { path: p.out.clone(), cause: source })?;
+    let mut t3 = Tracks3dWriter::create(&p.out.join("tracks_3d.parquet"), track_pts.len(), &prov)?;
+    let bar = ctx.progress(num_train as u64, "oracle");
+    let frames = (0..num_train).map(|t| -> tables::Result<FrameState> {
+        let pos = posed(t);
+        let tp: Vec<[f32; 3]> =
+            track_pts.iter().map(|s| surface::position(&pos, tris, s).to_array()).collect();
+        t3.write(&tp)?;
+        bar.inc(1);
+        Ok(FrameState {
+            frame: t as u32,
+            position: gauss_pts
+                .iter()
+                .map(|s| surface::position(&pos, tris, s).to_array())
+                .collect(),
+            rotation: gauss_pts
+                .iter()
+                .map(|s| surface::frame(&pos, tris, s).to_array())
+                .map(|[x, y, z, w]| [w, x, y, z])
+                .collect(),
+        })
+    });
+    Model::save(&p.out.join("oracle"), &gaussians, frames, &prov)?;
+    t3.finish()?;
+    bar.finish_and_clear();
+
+    // Pass 3: render. Training frames first (tracks_2d, covisibility buffers), then eval views.
+    let mut by_frame: BTreeMap<(bool, u32), Vec<usize>> = BTreeMap::new();
+    for (i, c) in cams.iter().enumerate() {
+        by_frame.entry((c.split == Split::Eval, c.frame)).or_default().push(i);
+    }
+    let mut covis = (p.layout == Layout::Dycheck).then(|| covis::Covis::new(num_train));
+    if covis.is_some() {
+        for c in cams.iter_mut().filter(|c| c.split == Split::Eval) {
+            c.mask_path = Some(format!("covisible/{}/{:05}.png", c.camera, c.frame));
+        }
+    }
+    let mut t2 = Tracks2dWriter::create(&p.out.join("tracks_2d.parquet"), track_pts.len(), &prov)?;
+    let ss = p.supersample as usize;
+    let shade_fn = |tri: u32, b: [f32; 3]| shader.color(tri, b);
+    let bar = ctx.progress(cams.len() as u64, "render");
+    let mut next_train = 0u32;
+    for (&(eval, frame), idx) in &by_frame {
+        let pos = posed(frame as usize);
+        let out: Vec<Option<(raster::View, raster::Samples, Tracks2dFrame)>> = idx
+            .par_iter()
+            .map(|&i| -> Result<_, Error> {
+                let cam = &cams[i];
+                let view = raster::View::of(cam);
+                let samples = raster::rasterize(&view, ss, &pos, tris);
+                let r = raster::resolve(&samples, &shade_fn);
+                write_png(&p.out.join(&cam.image_path), &r.rgba)?;
+                write_npy_f32(&p.out.join(depth_rel(cam)), &[view.height, view.width], &r.depth)?;
+                write_png(
+                    &p.out.join(format!("mask/{}/{:05}.png", cam.camera, cam.frame)),
+                    &r.mask,
+                )?;
+                if let Some(c) = &covis
+                    && eval
+                {
+                    write_png(
+                        &p.out.join(cam.mask_path.as_deref().unwrap_or_default()),
+                        &c.mask(&samples, tris),
+                    )?;
+                }
+                bar.inc(1);
+                if eval {
+                    return Ok(None);
+                }
+                let mut f = Tracks2dFrame::default();
+                for s in &track_pts {
+                    let (q, vis) = raster::visibility(
+                        &view,
+                        &samples,
+                        surface::position(&pos, tris, s),
+                        s.tri,
+                    )
+                    .map(|(q, v)| ([q.x, q.y], v))
+                    .unwrap_or(([-1.0, -1.0], false));
+                    f.xy.push(q);
+                    f.visible.push(vis);
+                }
+                Ok(Some((view, samples, f)))
+            })
+            .collect::<Result<_, Error>>()?;
+        for (view, samples, f) in out.into_iter().flatten() {
+            if frame != next_train {
+                return Err(Error::Param {
+                    flag: "trajectory",
+                    msg: format!(
+                        "training frame {frame} is not the next frame ({next_train}): one training camera per frame"
+                    ),
+                });
+            }
+            t2.write(&f)?;
+            next_train += 1;
+            if let Some(c) = &mut covis
+                && c.wants(frame)
+            {
+                c.keep(view, pos.clone(), &samples);
+            }
+        }
+    }
+    t2.finish()?;
+    bar.finish_and_clear();
+
+    let scene = Scene { dir: p.out.clone(), cameras: cams };
+    scene.save(&prov)?;
+    let info = serde_json::json!({
+        "source": p.gltf.file_name().map(|f| f.to_string_lossy().to_string()),
+        "animation": anim.map(|a| a.name.clone()),
+        "animation_start_s": anim.map(|a| a.start),
+        "animation_end_s": anim.map(|a| a.end),
+        "fps": p.fps,
+        "frames": num_train,
+        "object_centre_gltf": centre.to_array(),
+        "bbox_diagonal_gltf": diag,
+        "normalise_scale": norm_scale,
+        "bbox_diagonal": 2.0,
+        "placement": placement,
+        "orbit_distance": if on_path { None } else { Some(cameras::ORBIT_DISTANCE) },
+        "procedural_texture": shader.any_procedural(),
+        "oracle_spacing": spacing,
+        "trajectory": p.trajectory,
+    });
+    let text = serde_json::to_string_pretty(&info).unwrap_or_default();
+    image_io::write_atomic(&p.out.join("scene.json"), text.as_bytes())?;
+    if p.layout == Layout::Dycheck {
+        dycheck::write_layout(&scene, &p.out.join("dycheck"), ctx)?;
+    }
+    Ok(Summary { frames: num_train, images: scene.cameras.len(), triangles: tris.len() })
+}
+
+fn depth_rel(c: &Camera) -> String {
+    c.depth_path.clone().unwrap_or_else(|| format!("depth/{}/{:05}.npy", c.camera, c.frame))
+}

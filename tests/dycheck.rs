@@ -1,0 +1,455 @@
+//! `usplat4d import dycheck` end to end: the real paper-windmill camera files, a round trip
+//! through `write_layout`, and a bad-input corpus made by breaking one windmill file at a
+//! time (exact error text pinned). Tests needing shared/data skip with a note without it.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
+use usplat4d::context::Context;
+use usplat4d::datasets::dycheck::{read_camera_path, write_layout};
+use usplat4d::image_io::{self, Image};
+use usplat4d::scene::{Camera, Scene};
+
+/// The paper-windmill camera files, if shared/data is reachable.
+fn windmill() -> Option<PathBuf> {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let found = ["../../shared/data", "../shared/data"]
+        .iter()
+        .map(|r| root.join(r).join("real/dycheck-paper-windmill-cameras"))
+        .find(|p| p.join("splits/train.json").exists());
+    if found.is_none() {
+        eprintln!("skipping: shared/data/real/dycheck-paper-windmill-cameras not found");
+    }
+    found
+}
+
+/// Run the binary; returns (exit code, stderr).
+fn usplat4d(args: &[&str]) -> (i32, String) {
+    let out =
+        Command::new(env!("CARGO_BIN_EXE_usplat4d")).args(args).output().expect("run usplat4d");
+    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+fn import(data: &Path, out: &Path, extra: &[&str]) -> (i32, String) {
+    let mut args =
+        vec!["import", "dycheck", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    usplat4d(&args)
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let dst = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &dst);
+        } else {
+            std::fs::copy(e.path(), dst).unwrap();
+        }
+    }
+}
+
+fn read_json(path: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+fn write_json(path: &Path, v: &Value) {
+    std::fs::write(path, serde_json::to_vec_pretty(v).unwrap()).unwrap();
+}
+
+#[test]
+fn windmill_cameras_only_import() {
+    let Some(data) = windmill() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("scene");
+    let (code, err) = import(&data, &out, &["--cameras-only", "--quiet"]);
+    assert_eq!((code, err.as_str()), (0, ""));
+    let scene = Scene::load(&out).unwrap();
+    assert_eq!((scene.train().count(), scene.eval().count()), (277, 419));
+    let raw = read_json(&data.join("camera/0_00010.json"));
+    let c = scene.train_by_frame()[10];
+    assert_eq!((c.width, c.height), (360, 480));
+    assert_eq!(c.fx, raw["focal_length"].as_f64().unwrap() / 2.0);
+    assert_eq!(c.cy, raw["principal_point"][1].as_f64().unwrap() / 2.0);
+    let pos: Vec<f64> =
+        raw["position"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    assert!((c.center() - glam::DVec3::new(pos[0], pos[1], pos[2])).length() < 1e-9);
+    assert!(scene.cameras.iter().all(|c| c.depth_path.is_none() && c.mask_path.is_none()));
+    let meta = read_json(&out.join("scene.json"));
+    assert_eq!(meta["factor"], 2);
+    assert_eq!(meta["world"], "source");
+    assert_eq!(meta["fps"], 30.0);
+    let (near, scale) = (
+        meta["dycheck_scene"]["near"].as_f64().unwrap(),
+        meta["dycheck_scene"]["scale"].as_f64().unwrap(),
+    );
+    assert_eq!(meta["near"].as_f64().unwrap(), near / scale);
+
+    let out2 = tmp.path().join("scene-normalised");
+    let (code, _) =
+        import(&data, &out2, &["--cameras-only", "--quiet", "--world", "dycheck", "--factor", "4"]);
+    assert_eq!(code, 0);
+    let norm = Scene::load(&out2).unwrap();
+    let c2 = norm.train_by_frame()[10];
+    assert_eq!((c2.width, c2.height), (180, 240));
+    let center: Vec<f64> = meta["dycheck_scene"]["center"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let want = (c.center() - glam::DVec3::new(center[0], center[1], center[2])) * scale;
+    assert!((c2.center() - want).length() < 1e-9);
+}
+
+/// A tiny RGBA test pattern, different per (camera, frame).
+fn pattern(w: usize, h: usize, seed: usize, channels: usize) -> Image {
+    let data = (0..w * h * channels).map(|i| ((i * 7 + seed * 13) % 256) as f32 / 255.0).collect();
+    Image { width: w, height: h, channels, data }
+}
+
+/// A scene built by hand along the windmill path at factor 8 (90x120): training frames
+/// 0..3 of camera 0 (with depth) and camera 1 at the same times (with binary masks).
+fn hand_made_scene(data: &Path, dir: &Path) -> Scene {
+    let cams: Vec<Camera> = read_camera_path(data, 8)
+        .unwrap()
+        .into_iter()
+        .filter(|c| c.frame < 4 && (c.camera == "0" || c.camera == "1"))
+        .collect();
+    assert_eq!(cams.len(), 8);
+    for (k, c) in cams.iter().enumerate() {
+        let (w, h) = (c.width as usize, c.height as usize);
+        image_io::write_png(&dir.join(&c.image_path), &pattern(w, h, k, 4)).unwrap();
+        if let Some(d) = &c.depth_path {
+            let depth: Vec<f32> = (0..w * h)
+                .map(|i| if i % 11 == 0 { 0.0 } else { 0.5 + (i % 97) as f32 * 0.01 })
+                .collect();
+            image_io::write_npy_f32(&dir.join(d), &[h, w], &depth).unwrap();
+        }
+        if let Some(m) = &c.mask_path {
+            let mask: Vec<f32> = (0..w * h).map(|i| ((i / 5 + k) % 2) as f32).collect();
+            image_io::write_png(
+                &dir.join(m),
+                &Image { width: w, height: h, channels: 1, data: mask },
+            )
+            .unwrap();
+        }
+    }
+    std::fs::write(dir.join("scene.json"), r#"{"fps": 24.0}"#).unwrap();
+    Scene { dir: dir.to_path_buf(), cameras: cams }
+}
+
+#[test]
+fn layout_round_trip() {
+    let Some(data) = windmill() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = hand_made_scene(&data, &tmp.path().join("scene"));
+    let layout = tmp.path().join("layout");
+    write_layout(&scene, &layout, &Context::quiet()).unwrap();
+
+    let cam_json = read_json(&layout.join("camera/1_00002.json"));
+    assert_eq!(cam_json["image_size"], serde_json::json!([180, 240]));
+    assert_eq!(image_io::read_png(&layout.join("rgb/1x/0_00003.png")).unwrap().width, 180);
+    let (shape, _) = image_io::read_npy_f32(&layout.join("depth/2x/0_00001.npy")).unwrap();
+    assert_eq!(shape, vec![120, 90, 1]);
+    let val = read_json(&layout.join("splits/val.json"));
+    assert_eq!(val["frame_names"], serde_json::json!(["1_00000", "1_00001", "1_00002", "1_00003"]));
+    assert_eq!(read_json(&layout.join("extra.json"))["fps"], 24.0);
+    assert_eq!(read_json(&layout.join("dataset.json"))["num_exemplars"], 4);
+    let info = read_json(&layout.join("scene.json"));
+    assert!(
+        info["near"].as_f64().unwrap() > 0.0
+            && info["far"].as_f64().unwrap() > info["near"].as_f64().unwrap()
+    );
+
+    let back_dir = tmp.path().join("back");
+    let (code, err) = import(&layout, &back_dir, &["--quiet"]);
+    assert_eq!((code, err.as_str()), (0, ""));
+    let back = Scene::load(&back_dir).unwrap();
+    assert_eq!(back.cameras.len(), scene.cameras.len());
+    for (a, b) in scene.cameras.iter().zip(&back.cameras) {
+        assert_eq!((&a.camera, a.frame, a.split), (&b.camera, b.frame, b.split));
+        assert_eq!(
+            (a.fx, a.fy, a.cx, a.cy, a.width, a.height),
+            (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+        );
+        assert!(
+            a.w2c.iter().zip(&b.w2c).all(|(x, y)| (x - y).abs() < 1e-12),
+            "{:?} vs {:?}",
+            a.w2c,
+            b.w2c
+        );
+        assert_eq!(
+            (&a.image_path, &a.depth_path, &a.mask_path),
+            (&b.image_path, &b.depth_path, &b.mask_path)
+        );
+        let img = |s: &Scene, c: &Camera| image_io::read_png(&s.resolve(&c.image_path)).unwrap();
+        assert_eq!(img(&scene, a), img(&back, b));
+        if let Some(d) = &a.depth_path {
+            assert_eq!(
+                image_io::read_npy_f32(&scene.resolve(d)).unwrap(),
+                image_io::read_npy_f32(&back.resolve(d)).unwrap()
+            );
+        }
+        if let Some(m) = &a.mask_path {
+            assert_eq!(
+                image_io::read_png(&scene.resolve(m)).unwrap(),
+                image_io::read_png(&back.resolve(m)).unwrap()
+            );
+        }
+    }
+
+    let kp = layout.join("keypoint/2x/train");
+    std::fs::create_dir_all(&kp).unwrap();
+    std::fs::write(kp.join("0_00002.json"), "[[10.0, 20.0, 1.0]]").unwrap();
+    std::fs::write(kp.join("skeleton.json"), r#"{"parents": [null]}"#).unwrap();
+    let norm_dir = tmp.path().join("normalised");
+    let (code, _) = import(&layout, &norm_dir, &["--quiet", "--world", "dycheck"]);
+    assert_eq!(code, 0);
+    let meta = read_json(&norm_dir.join("scene.json"));
+    assert_eq!(meta["keypoints"], "keypoint/2x/train");
+    assert_eq!(
+        std::fs::read(norm_dir.join("keypoint/2x/train/0_00002.json")).unwrap(),
+        b"[[10.0, 20.0, 1.0]]"
+    );
+    assert!(norm_dir.join("keypoint/2x/train/skeleton.json").exists());
+    let scale = info["scale"].as_f64().unwrap();
+    assert_eq!(meta["dycheck_scene"]["scale"], scale);
+    let rel = scene.cameras[0].depth_path.as_ref().unwrap();
+    let (_, d0) = image_io::read_npy_f32(&scene.resolve(rel)).unwrap();
+    let (_, d1) = image_io::read_npy_f32(&norm_dir.join(rel)).unwrap();
+    assert!(d0.iter().zip(&d1).all(|(a, b)| *b == (*a as f64 * scale) as f32));
+
+    let full_dir = tmp.path().join("full");
+    let (code, _) = import(&layout, &full_dir, &["--quiet", "--factor", "1"]);
+    assert_eq!(code, 0);
+    let full = Scene::load(&full_dir).unwrap();
+    let (a, b) = (&scene.cameras[5], &full.cameras[5]);
+    assert_eq!((b.width, b.height, b.fx), (2 * a.width, 2 * a.height, 2.0 * a.fx));
+    let m = image_io::read_png(&full.resolve(b.mask_path.as_ref().unwrap())).unwrap();
+    assert_eq!((m.width, m.height), (180, 240));
+}
+
+/// One broken copy of the windmill files: what to break and the exact stderr.
+struct Case {
+    name: &'static str,
+    args: &'static [&'static str],
+    breaks: fn(&Path),
+    stderr: fn(&Path) -> String,
+}
+
+fn edit(path: &Path, f: impl FnOnce(&mut Value)) {
+    let mut v = read_json(path);
+    f(&mut v);
+    write_json(path, &v);
+}
+
+const CAMERAS_ONLY: &[&str] = &["--cameras-only"];
+
+fn cases() -> Vec<Case> {
+    vec![
+        Case {
+            name: "missing camera file",
+            args: CAMERAS_ONLY,
+            breaks: |d| std::fs::remove_file(d.join("camera/0_00005.json")).unwrap(),
+            stderr: |d| {
+                format!(
+                    "error: {}: file not found (needed by splits/train.json entry 5)\n",
+                    d.join("camera/0_00005.json").display()
+                )
+            },
+        },
+        Case {
+            name: "missing split",
+            args: CAMERAS_ONLY,
+            breaks: |d| std::fs::remove_file(d.join("splits/val.json")).unwrap(),
+            stderr: |d| format!("error: {}: file not found\n", d.join("splits/val.json").display()),
+        },
+        Case {
+            name: "malformed JSON",
+            args: CAMERAS_ONLY,
+            breaks: |d| {
+                std::fs::write(d.join("camera/1_00003.json"), "{\"focal_length\": 719.9,").unwrap()
+            },
+            stderr: |d| {
+                format!(
+                    "error: {}: malformed JSON: EOF while parsing a value at line 1 column 23\n",
+                    d.join("camera/1_00003.json").display()
+                )
+            },
+        },
+        Case {
+            name: "missing key",
+            args: CAMERAS_ONLY,
+            breaks: |d| {
+                edit(&d.join("camera/0_00002.json"), |v| {
+                    v.as_object_mut().unwrap().remove("focal_length");
+                })
+            },
+            stderr: |d| {
+                format!(
+                    "error: {}: key 'focal_length': missing\n",
+                    d.join("camera/0_00002.json").display()
+                )
+            },
+        },
+        Case {
+            name: "orientation with two rows",
+            args: CAMERAS_ONLY,
+            breaks: |d| {
+                edit(&d.join("camera/2_00100.json"), |v| {
+                    v["orientation"].as_array_mut().unwrap().truncate(2)
+                })
+            },
+            stderr: |d| {
+                format!(
+                    "error: {}: key 'orientation': expected 3 rows of 3 numbers, got 2 rows\n",
+                    d.join("camera/2_00100.json").display()
+                )
+            },
+        },
+        Case {
+            name: "orientation row of two",
+            args: CAMERAS_ONLY,
+            breaks: |d| {
+                edit(&d.join("camera/0_00000.json"), |v| {
+                    v["orientation"][1].as_array_mut().unwrap().truncate(2)
+                })
+            },
+            stderr: |d| {
+                format!(
+                    "error: {}: key 'orientation[1]': expected 3 numbers, got 2\n",
+                    d.join("camera/0_00000.json").display()
+                )
+            },
+        },
+        Case {
+            name: "orientation not a rotation",
+            args: CAMERAS_ONLY,
+            breaks: |d| {
+                edit(&d.join("camera/0_00000.json"), |v| v["orientation"][0][0] = 2.0.into())
+            },
+            stderr: |d| {
+                format!(
+                    "error: {}: key 'orientation': not a rotation matrix \
+                     (max |O*O^T - I| = 3.000e0, det = 2.0000)\n",
+                    d.join("camera/0_00000.json").display()
+                )
+            },
+        },
+        Case {
+            name: "position not a list",
+            args: CAMERAS_ONLY,
+            breaks: |d| edit(&d.join("camera/0_00001.json"), |v| v["position"] = "abc".into()),
+            stderr: |d| {
+                format!(
+                    "error: {}: key 'position': expected a list of 3 numbers, got \"abc\"\n",
+                    d.join("camera/0_00001.json").display()
+                )
+            },
+        },
+        Case {
+            name: "split lists of different lengths",
+            args: CAMERAS_ONLY,
+            breaks: |d| {
+                edit(&d.join("splits/train.json"), |v| {
+                    v["time_ids"].as_array_mut().unwrap().truncate(276)
+                })
+            },
+            stderr: |d| {
+                format!(
+                    "error: {}: key 'time_ids': has 276 entries but 'frame_names' has 277\n",
+                    d.join("splits/train.json").display()
+                )
+            },
+        },
+        Case {
+            name: "validation time without a training image",
+            args: CAMERAS_ONLY,
+            breaks: |d| edit(&d.join("splits/val.json"), |v| v["time_ids"][0] = 999.into()),
+            stderr: |d| {
+                format!(
+                    "error: {}: key 'time_ids[0]': time id 999 has no training image\n",
+                    d.join("splits/val.json").display()
+                )
+            },
+        },
+        Case {
+            name: "factor zero",
+            args: &["--cameras-only", "--factor", "0"],
+            breaks: |_| {},
+            stderr: |_| "error: factor must be at least 1, got 0\n".into(),
+        },
+        Case {
+            name: "images missing without --cameras-only",
+            args: &[],
+            breaks: |_| {},
+            stderr: |d| {
+                format!(
+                    "{}error: {}: file not found (needed by '0_00000' of splits/train.json)\n",
+                    no_depth_no_masks(d),
+                    d.join("rgb/2x/0_00000.png").display()
+                )
+            },
+        },
+        Case {
+            name: "corrupt image",
+            args: &[],
+            breaks: |d| {
+                std::fs::create_dir_all(d.join("rgb/2x")).unwrap();
+                std::fs::write(d.join("rgb/2x/0_00000.png"), "garbage").unwrap();
+            },
+            stderr: |d| {
+                format!(
+                    "{}error: {}: Format error decoding Png: Invalid PNG signature.\n",
+                    no_depth_no_masks(d),
+                    d.join("rgb/2x/0_00000.png").display()
+                )
+            },
+        },
+        Case {
+            name: "image of the wrong size",
+            args: &[],
+            breaks: |d| {
+                image_io::write_png(&d.join("rgb/2x/0_00000.png"), &pattern(4, 3, 0, 4)).unwrap();
+            },
+            stderr: |d| {
+                format!(
+                    "{}error: {}: image is 4x3 but its camera at factor 2 is 360x480 (W x H)\n",
+                    no_depth_no_masks(d),
+                    d.join("rgb/2x/0_00000.png").display()
+                )
+            },
+        },
+    ]
+}
+
+/// The warnings of a full import of a sequence without depth and covisibility folders.
+fn no_depth_no_masks(d: &Path) -> String {
+    format!(
+        "warning: {} not found: training images get no depth\n\
+         warning: {} not found: evaluation images get no covisibility mask\n",
+        d.join("depth/2x").display(),
+        d.join("covisible/2x/val").display()
+    )
+}
+
+#[test]
+fn bad_inputs_give_exact_errors() {
+    let Some(data) = windmill() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let mut failures = Vec::new();
+    for (i, case) in cases().into_iter().enumerate() {
+        let dir = tmp.path().join(format!("seq{i}"));
+        copy_dir(&data, &dir);
+        (case.breaks)(&dir);
+        let (code, err) = import(&dir, &tmp.path().join(format!("out{i}")), case.args);
+        let want = (case.stderr)(&dir);
+        if code != 2 || err != want {
+            failures.push(format!("{}: exit {code}\n got: {err}\nwant: {want}", case.name));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
