@@ -5,6 +5,7 @@ mod util;
 
 mod bad_inputs;
 mod dycheck;
+mod evaluate;
 mod inspect;
 mod interop;
 mod pipeline;

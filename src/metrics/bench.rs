@@ -1,11 +1,173 @@
-//! (being written)
+//! `usplat4d bench metrics`: per-image timings of PSNR, SSIM and LPIPS on synthetic
+//! `size x size` images, and optionally of `evaluate` over a temporary scene of N eval
+//! images (the synthetic benchmark has 11 cameras x 121 frames = 1,331). Build with
+//! `--release` for meaningful numbers.
 
-/// Parameters.
+use std::time::Instant;
+
+use anyhow::Context as _;
+
+use super::lpips::{Lpips, WeightsError};
+use super::{psnr::psnr, ssim::ssim};
+use crate::context::Context;
+use crate::image_io::{Image, write_png};
+use crate::scene::{Camera, Scene, Split};
+use crate::stages::evaluate::{MaskMode, evaluate_images};
+use crate::tables::Provenance;
+
+/// Parameters of `usplat4d bench metrics`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
-pub struct BenchMetricsParams {}
+pub struct BenchMetricsParams {
+    /// Image side, pixels.
+    #[arg(long, default_value_t = 512)]
+    #[serde(default = "default_size")]
+    pub size: usize,
+    /// Timed repetitions per metric (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    #[serde(default = "default_repeats")]
+    pub repeats: usize,
+    /// Also time `evaluate` over a temporary scene of this many eval images (0 = skip).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    #[serde(default)]
+    pub evaluate: usize,
+}
 
-/// Run the stage.
-pub fn run(_p: &BenchMetricsParams, _ctx: &crate::context::Context) -> anyhow::Result<()> {
-    anyhow::bail!("not available yet")
+fn default_size() -> usize {
+    512
+}
+
+fn default_repeats() -> usize {
+    5
+}
+
+impl Default for BenchMetricsParams {
+    fn default() -> Self {
+        BenchMetricsParams { size: default_size(), repeats: default_repeats(), evaluate: 0 }
+    }
+}
+
+/// A deterministic test image `[size, size, C]`: a smooth pattern plus splitmix64 noise of
+/// amplitude `noise`.
+fn test_image(size: usize, channels: usize, seed: u64, noise: f32) -> Image {
+    let mut s = seed;
+    let mut next = move || {
+        s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = s;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let mut data = Vec::with_capacity(size * size * channels);
+    for y in 0..size {
+        for x in 0..size {
+            for c in 0..channels {
+                let base = if c == 3 {
+                    1.0
+                } else {
+                    0.5 + 0.4 * ((x as f32 * 0.03 + c as f32) * (y as f32 * 0.02 + 1.0)).sin()
+                };
+                data.push((base + noise * (next() - 0.5)).clamp(0.0, 1.0));
+            }
+        }
+    }
+    Image { width: size, height: size, channels, data }.quantized()
+}
+
+/// Median seconds of `repeats` runs of `f`.
+fn median_secs(repeats: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<f64> {
+    let mut t = Vec::with_capacity(repeats);
+    for _ in 0..repeats.max(1) {
+        let start = Instant::now();
+        f()?;
+        t.push(start.elapsed().as_secs_f64());
+    }
+    t.sort_by(f64::total_cmp);
+    Ok(t[t.len() / 2])
+}
+
+/// Run the benchmark.
+pub fn run(p: &BenchMetricsParams, ctx: &Context) -> anyhow::Result<()> {
+    let (n, r) = (p.size, p.repeats);
+    let a = test_image(n, 3, 1, 0.1);
+    let b = test_image(n, 3, 2, 0.3);
+    let threads = rayon::current_num_threads();
+    println!("bench metrics: {n}x{n} images, median of {r}, {threads} threads");
+    let t = median_secs(r, || psnr(&a, &b, None).map(drop).map_err(Into::into))?;
+    println!("psnr   {:9.2} ms/image", t * 1e3);
+    let t = median_secs(r, || ssim(&a, &b, None).map(drop).map_err(Into::into))?;
+    println!("ssim   {:9.2} ms/image", t * 1e3);
+    let mask: Vec<f32> = (0..n * n).map(|i| if i % n < n / 2 { 1.0 } else { 0.0 }).collect();
+    let t = median_secs(r, || ssim(&a, &b, Some(&mask)).map(drop).map_err(Into::into))?;
+    println!("mssim  {:9.2} ms/image", t * 1e3);
+    let lpips = match Lpips::load_default() {
+        Ok(l) => {
+            let t = median_secs(r, || l.distance(&a, &b, None).map(drop).map_err(Into::into))?;
+            println!("lpips  {:9.2} ms/image", t * 1e3);
+            Some(l)
+        }
+        Err(e @ WeightsError::Missing { .. }) => {
+            println!("lpips  skipped: {e}");
+            None
+        }
+        Err(e) => return Err(e.into()),
+    };
+    if p.evaluate > 0 {
+        let tmp = tempfile::tempdir().context("creating a temporary directory")?;
+        let scene = bench_scene(tmp.path(), n, p.evaluate)?;
+        let renders = tmp.path().join("renders");
+        let img = test_image(n, 4, 3, 0.3);
+        for c in scene.eval() {
+            write_png(&renders.join(&c.image_path), &img)?;
+        }
+        let start = Instant::now();
+        let rows = evaluate_images(&scene, &renders, "bench", lpips.as_ref(), MaskMode::Auto, ctx)?;
+        let secs = start.elapsed().as_secs_f64();
+        println!(
+            "evaluate {} images ({}): {secs:.1} s ({:.1} ms/image)",
+            rows.len(),
+            if lpips.is_some() { "psnr, ssim, lpips" } else { "psnr, ssim" },
+            secs * 1e3 / rows.len() as f64
+        );
+    }
+    Ok(())
+}
+
+/// A scene of `count` eval images (11 cameras with angle offsets, round-robin) of side
+/// `size` in `dir/scene`, plus one training image.
+fn bench_scene(dir: &std::path::Path, size: usize, count: usize) -> anyhow::Result<Scene> {
+    let cam = |name: String, frame: u32, split: Split, angle: Option<f32>| Camera {
+        frame,
+        camera: name.clone(),
+        split,
+        fx: size as f64,
+        fy: size as f64,
+        cx: size as f64 / 2.0,
+        cy: size as f64 / 2.0,
+        width: size as u32,
+        height: size as u32,
+        w2c: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0],
+        image_path: format!("rgb/{name}/{frame:05}.png"),
+        depth_path: None,
+        mask_path: None,
+        angle_offset_deg: angle,
+        distortion: None,
+    };
+    let mut cameras = vec![cam("cam00".into(), 0, Split::Train, None)];
+    for i in 0..count {
+        let k = i % 11 + 1;
+        cameras.push(cam(
+            format!("cam{k:02}"),
+            (i / 11) as u32,
+            Split::Eval,
+            Some(30.0 * k as f32),
+        ));
+    }
+    let scene = Scene { dir: dir.join("scene"), cameras };
+    let img = test_image(size, 4, 4, 0.1);
+    for c in &scene.cameras {
+        write_png(&scene.resolve(&c.image_path), &img)?;
+    }
+    scene.save(&Provenance::new("bench metrics", &()))?;
+    Ok(scene)
 }

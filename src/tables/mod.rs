@@ -126,5 +126,6 @@ pub fn registry() -> Vec<TableKind> {
         entry::<trajectories::TrajectoriesTable>(),
         entry::<tracks_2d::Tracks2dTable>(),
         entry::<tracks_3d::Tracks3dTable>(),
+        entry::<metrics::MetricsTable>(),
     ]
 }

@@ -1,0 +1,296 @@
+//! The LPIPS v0.1 network (`lpips/lpips.py`, formats-and-protocols.md §4.1) on the CPU:
+//! scaling layer, AlexNet `features` up to relu5, channel-normalised squared differences,
+//! 1x1 linear layers and the bilinear (align_corners=False) upsampling of the spatial map.
+//!
+//! Feature maps are `[h, w, C]` row-major. A convolution is im2col + matrix product: for a
+//! fixed-size chunk of output positions (rayon over chunks, so results do not depend on
+//! the thread count) the patch matrix `[P, k·k·Cin]` (order ky, kx, ci) is multiplied by
+//! the weights `[k·k·Cin, Cout]` (HWIO) with `ndarray`'s blocked GEMM (matrixmultiply).
+
+use ndarray::{ArrayView2, ArrayViewMut2, linalg::general_mat_mul};
+use rayon::prelude::*;
+
+use super::weights::{AlexWeights, ConvWeights};
+
+/// `shift` of LPIPS's scaling layer (inputs in [−1, 1]).
+pub const SHIFT: [f32; 3] = [-0.030, -0.088, -0.188];
+/// `scale` of LPIPS's scaling layer.
+pub const SCALE: [f32; 3] = [0.458, 0.448, 0.450];
+/// Strides and paddings of AlexNet's five convolutions.
+const STRIDE_PAD: [(usize, usize); 5] = [(4, 2), (1, 2), (1, 1), (1, 1), (1, 1)];
+/// Output positions per GEMM chunk.
+const CHUNK: usize = 512;
+/// Smallest image side the network accepts (one position left after the second pooling).
+pub const MIN_SIDE: usize = 31;
+
+/// A feature map `[h, w, c]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Features {
+    /// Height.
+    pub h: usize,
+    /// Width.
+    pub w: usize,
+    /// Channels.
+    pub c: usize,
+    /// `[h, w, c]` values.
+    pub data: Vec<f32>,
+}
+
+/// One convolution ready for im2col: weights `[k·k·Cin, Cout]` (HWIO).
+struct Conv {
+    cin: usize,
+    cout: usize,
+    k: usize,
+    stride: usize,
+    pad: usize,
+    hwio: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl Conv {
+    fn new(w: &ConvWeights, stride: usize, pad: usize) -> Conv {
+        let (cin, cout, k) = (w.cin, w.cout, w.k);
+        let mut hwio = vec![0.0; w.weight.len()];
+        for co in 0..cout {
+            for ci in 0..cin {
+                for ky in 0..k {
+                    for kx in 0..k {
+                        hwio[((ky * k + kx) * cin + ci) * cout + co] =
+                            w.weight[((co * cin + ci) * k + ky) * k + kx];
+                    }
+                }
+            }
+        }
+        Conv { cin, cout, k, stride, pad, hwio, bias: w.bias.clone() }
+    }
+
+    /// `relu(conv(x) + bias)`.
+    fn forward_relu(&self, x: &Features) -> Features {
+        assert_eq!(x.c, self.cin, "input channels");
+        let (k, s, p) = (self.k, self.stride, self.pad);
+        let oh = (x.h + 2 * p - k) / s + 1;
+        let ow = (x.w + 2 * p - k) / s + 1;
+        let kk = k * k * self.cin;
+        let cout = self.cout;
+        let weights =
+            ArrayView2::from_shape((kk, cout), &self.hwio).expect("weights are [k·k·Cin, Cout]");
+        let mut out = vec![0.0f32; oh * ow * cout];
+        out.par_chunks_mut(CHUNK * cout).enumerate().for_each(|(chunk, out)| {
+            let p0 = chunk * CHUNK;
+            let np = out.len() / cout;
+            let mut col = vec![0.0f32; np * kk];
+            for r in 0..np {
+                let (oy, ox) = ((p0 + r) / ow, (p0 + r) % ow);
+                for ky in 0..k {
+                    let iy = (oy * s + ky) as isize - p as isize;
+                    if iy < 0 || iy >= x.h as isize {
+                        continue;
+                    }
+                    for kx in 0..k {
+                        let ix = (ox * s + kx) as isize - p as isize;
+                        if ix < 0 || ix >= x.w as isize {
+                            continue;
+                        }
+                        let src = (iy as usize * x.w + ix as usize) * self.cin;
+                        let dst = r * kk + (ky * k + kx) * self.cin;
+                        col[dst..dst + self.cin].copy_from_slice(&x.data[src..src + self.cin]);
+                    }
+                }
+            }
+            for row in out.chunks_exact_mut(cout) {
+                row.copy_from_slice(&self.bias);
+            }
+            let a = ArrayView2::from_shape((np, kk), &col).expect("patches are [P, k·k·Cin]");
+            let mut c =
+                ArrayViewMut2::from_shape((np, cout), &mut *out).expect("output is [P, Cout]");
+            general_mat_mul(1.0, &a, &weights, 1.0, &mut c);
+            for v in out.iter_mut() {
+                *v = v.max(0.0);
+            }
+        });
+        Features { h: oh, w: ow, c: cout, data: out }
+    }
+}
+
+/// 3x3 max pooling with stride 2, no padding (floor mode).
+fn max_pool(x: &Features) -> Features {
+    let oh = (x.h - 3) / 2 + 1;
+    let ow = (x.w - 3) / 2 + 1;
+    let mut out = vec![f32::NEG_INFINITY; oh * ow * x.c];
+    for oy in 0..oh {
+        for ox in 0..ow {
+            let dst = &mut out[(oy * ow + ox) * x.c..(oy * ow + ox + 1) * x.c];
+            for ky in 0..3 {
+                for kx in 0..3 {
+                    let src = ((oy * 2 + ky) * x.w + ox * 2 + kx) * x.c;
+                    for (d, v) in dst.iter_mut().zip(&x.data[src..src + x.c]) {
+                        *d = d.max(*v);
+                    }
+                }
+            }
+        }
+    }
+    Features { h: oh, w: ow, c: x.c, data: out }
+}
+
+/// The LPIPS v0.1 AlexNet network, ready to run.
+pub struct Network {
+    convs: Vec<Conv>,
+    lins: Vec<Vec<f32>>,
+}
+
+impl Network {
+    /// Build the network from loaded weights.
+    pub fn new(w: &AlexWeights) -> Network {
+        let convs = w.convs.iter().zip(STRIDE_PAD).map(|(c, (s, p))| Conv::new(c, s, p)).collect();
+        Network { convs, lins: w.lins.clone() }
+    }
+
+    /// The five relu taps of AlexNet for an image `[H, W, 3]` with values in [0, 1]
+    /// (mapped to [−1, 1], then through the scaling layer). `H, W ≥ MIN_SIDE`.
+    pub fn taps(&self, rgb: &[f32], w: usize, h: usize) -> Vec<Features> {
+        assert!(w >= MIN_SIDE && h >= MIN_SIDE, "image {w}x{h} below {MIN_SIDE}");
+        let data = rgb
+            .chunks_exact(3)
+            .flat_map(|p| (0..3).map(move |c| ((2.0 * p[c] - 1.0) - SHIFT[c]) / SCALE[c]))
+            .collect();
+        let mut x = Features { h, w, c: 3, data };
+        let mut taps = Vec::with_capacity(5);
+        for (i, conv) in self.convs.iter().enumerate() {
+            x = conv.forward_relu(&x);
+            taps.push(x.clone());
+            if i < 2 {
+                x = max_pool(&x);
+            }
+        }
+        taps
+    }
+
+    /// The spatial LPIPS map `[H, W]` between two images `[H, W, 3]` in [0, 1]: the sum
+    /// over the five taps of the linear layer on `(n0 − n1)²` (n = f/(‖f‖ + 1e-10) over
+    /// channels), each upsampled to `H×W` bilinearly.
+    pub fn spatial_map(&self, a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
+        let (ta, tb) = rayon::join(|| self.taps(a, w, h), || self.taps(b, w, h));
+        let mut map = vec![0.0f32; w * h];
+        for ((fa, fb), lin) in ta.iter().zip(&tb).zip(&self.lins) {
+            let layer: Vec<f32> = fa
+                .data
+                .chunks_exact(fa.c)
+                .zip(fb.data.chunks_exact(fb.c))
+                .map(|(pa, pb)| {
+                    let na = pa.iter().map(|v| v * v).sum::<f32>().sqrt() + 1e-10;
+                    let nb = pb.iter().map(|v| v * v).sum::<f32>().sqrt() + 1e-10;
+                    pa.iter()
+                        .zip(pb)
+                        .zip(lin)
+                        .map(|((x, y), l)| l * (x / na - y / nb).powi(2))
+                        .sum()
+                })
+                .collect();
+            for (m, v) in map.iter_mut().zip(upsample_bilinear(&layer, fa.w, fa.h, w, h)) {
+                *m += v;
+            }
+        }
+        map
+    }
+}
+
+/// PyTorch `F.interpolate(mode="bilinear", align_corners=False)` of a single-channel map
+/// `[h, w]` to `[out_h, out_w]`: `src = (dst + 0.5)·in/out − 0.5`, clamped at 0,
+/// `i0 = floor(src)`, `i1 = min(i0 + 1, in − 1)`.
+pub fn upsample_bilinear(src: &[f32], w: usize, h: usize, out_w: usize, out_h: usize) -> Vec<f32> {
+    let axis = |n_in: usize, n_out: usize| -> Vec<(usize, usize, f32)> {
+        let scale = n_in as f32 / n_out as f32;
+        (0..n_out)
+            .map(|d| {
+                let s = ((d as f32 + 0.5) * scale - 0.5).max(0.0);
+                let i0 = (s as usize).min(n_in - 1);
+                let i1 = (i0 + 1).min(n_in - 1);
+                (i0, i1, s - i0 as f32)
+            })
+            .collect()
+    };
+    let (xs, ys) = (axis(w, out_w), axis(h, out_h));
+    let mut out = Vec::with_capacity(out_w * out_h);
+    for &(y0, y1, ly) in &ys {
+        for &(x0, x1, lx) in &xs {
+            let top = (1.0 - lx) * src[y0 * w + x0] + lx * src[y0 * w + x1];
+            let bottom = (1.0 - lx) * src[y1 * w + x0] + lx * src[y1 * w + x1];
+            out.push((1.0 - ly) * top + ly * bottom);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bilinear_upsample_matches_pytorch_align_corners_false() {
+        // torch.nn.functional.interpolate(torch.tensor([[[[1., 2.], [3., 4.]]]]),
+        //   size=(4, 4), mode="bilinear", align_corners=False)
+        let want = [
+            1.0, 1.25, 1.75, 2.0, //
+            1.5, 1.75, 2.25, 2.5, //
+            2.5, 2.75, 3.25, 3.5, //
+            3.0, 3.25, 3.75, 4.0,
+        ];
+        assert_eq!(upsample_bilinear(&[1.0, 2.0, 3.0, 4.0], 2, 2, 4, 4), want);
+        // A 3 → 2 downscale: src = (d + 0.5)·1.5 − 0.5 = 0.25, 1.75.
+        let got = upsample_bilinear(&[0.0, 4.0, 8.0], 3, 1, 2, 1);
+        assert_eq!(got, [1.0, 7.0]);
+    }
+
+    #[test]
+    fn conv_matches_a_direct_convolution() {
+        let (cin, cout, k) = (2, 3, 3);
+        let weight: Vec<f32> =
+            (0..cout * cin * k * k).map(|i| ((i * 7 % 11) as f32 - 5.0) / 10.0).collect();
+        let bias = vec![0.1, -0.2, 0.05];
+        let cw = ConvWeights { cin, cout, k, weight: weight.clone(), bias: bias.clone() };
+        let conv = Conv::new(&cw, 2, 1);
+        let (h, w) = (5, 6);
+        let data: Vec<f32> = (0..h * w * cin).map(|i| ((i * 5 % 13) as f32 - 6.0) / 6.0).collect();
+        let x = Features { h, w, c: cin, data };
+        let y = conv.forward_relu(&x);
+        assert_eq!((y.h, y.w, y.c), (3, 3, 3));
+        for oy in 0..y.h {
+            for ox in 0..y.w {
+                for co in 0..cout {
+                    let mut acc = bias[co];
+                    for ci in 0..cin {
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let (iy, ix) =
+                                    ((oy * 2 + ky) as isize - 1, (ox * 2 + kx) as isize - 1);
+                                if iy >= 0 && ix >= 0 && (iy as usize) < h && (ix as usize) < w {
+                                    acc += weight[((co * cin + ci) * k + ky) * k + kx]
+                                        * x.data[(iy as usize * w + ix as usize) * cin + ci];
+                                }
+                            }
+                        }
+                    }
+                    let got = y.data[(oy * y.w + ox) * cout + co];
+                    assert!(
+                        (got - acc.max(0.0)).abs() < 1e-5,
+                        "({oy}, {ox}, {co}): {got} vs {acc}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn max_pool_takes_window_maxima() {
+        let x =
+            Features { h: 5, w: 5, c: 1, data: (0..25).map(|i| ((i * 7) % 25) as f32).collect() };
+        let y = max_pool(&x);
+        assert_eq!((y.h, y.w), (2, 2));
+        // Window rows 0..3, cols 0..3 of values (7i mod 25).
+        let want: f32 = (0..3)
+            .flat_map(|r| (0..3).map(move |c| ((r * 5 + c) * 7 % 25) as f32))
+            .fold(0.0, f32::max);
+        assert_eq!(y.data[0], want);
+    }
+}

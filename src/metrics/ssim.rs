@@ -1,0 +1,290 @@
+//! SSIM with DyCheck's masked variant mSSIM (`dycheck/core/metrics/image.py::compute_ssim`),
+//! reproduced exactly:
+//!
+//! - window: the 11-tap Gaussian `f_i ∝ exp(−0.5·((i − 5)/1.5)²)`, normalised; `k1 = 0.01`,
+//!   `k2 = 0.03`, data range 1;
+//! - separable **valid** convolution, horizontal pass then vertical pass, so the SSIM map is
+//!   `[(H − 10), (W − 10), 3]`;
+//! - partial convolution per pass: `blur(z, m) = where(m' ≠ 0, conv(z·m, f)·11 / m', 0)` with
+//!   `m' = conv(m, ones)`; the vertical pass uses the binary `m' ≠ 0` of the horizontal pass
+//!   as its mask;
+//! - `σ00 = blur(a²) − μ0²` (likewise σ11, σ01), clipped: `σ00, σ11 ≥ 0`,
+//!   `σ01 = sign(σ01)·min(√(σ00·σ11), |σ01|)`;
+//! - the score is the mean of the map; where no pixel of a window is valid, μ and σ are 0
+//!   and the map is exactly 1.
+//!
+//! Without a mask (all ones) every weight `11 / m'` is 1 and this is the standard SSIM of
+//! Wang et al. with a valid-mode Gaussian window (as `dm_pix.ssim` computes it).
+//! Arithmetic is f64; the three channels are computed in parallel (rayon) and summed in
+//! channel order.
+
+use rayon::prelude::*;
+
+use super::{Error, Result, check_pair};
+use crate::image_io::Image;
+
+/// Taps of the Gaussian window.
+pub const WINDOW: usize = 11;
+/// Standard deviation of the Gaussian window, pixels.
+pub const SIGMA: f64 = 1.5;
+/// SSIM constant k1 (c1 = k1², data range 1).
+pub const K1: f64 = 0.01;
+/// SSIM constant k2 (c2 = k2²).
+pub const K2: f64 = 0.03;
+
+/// The normalised 11-tap Gaussian window.
+pub fn window() -> [f64; WINDOW] {
+    let half = (WINDOW / 2) as f64;
+    let mut f = [0.0; WINDOW];
+    for (i, v) in f.iter_mut().enumerate() {
+        let t = (i as f64 - half) / SIGMA;
+        *v = (-0.5 * t * t).exp();
+    }
+    let s: f64 = f.iter().sum();
+    f.map(|v| v / s)
+}
+
+/// SSIM of `a` against `b` (`[H, W, 3]`, values in [0, 1]); with `mask` `[H, W]` it is
+/// DyCheck's mSSIM. Images need at least 11x11 pixels.
+pub fn ssim(a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<f64> {
+    check_pair("ssim", a, b, mask)?;
+    let (w, h) = (a.width, a.height);
+    if w < WINDOW || h < WINDOW {
+        return Err(Error::TooSmall { what: "ssim", w, h, min: WINDOW });
+    }
+    let blur = Blur::new(w, h, mask);
+    let c1 = K1 * K1;
+    let c2 = K2 * K2;
+    let channel = |c: usize| -> f64 {
+        let x: Vec<f64> = a.data.iter().skip(c).step_by(3).map(|v| *v as f64).collect();
+        let y: Vec<f64> = b.data.iter().skip(c).step_by(3).map(|v| *v as f64).collect();
+        let mu0 = blur.apply(&x);
+        let mu1 = blur.apply(&y);
+        let e00 = blur.apply(&x.iter().map(|v| v * v).collect::<Vec<_>>());
+        let e11 = blur.apply(&y.iter().map(|v| v * v).collect::<Vec<_>>());
+        let e01 = blur.apply(&x.iter().zip(&y).map(|(p, q)| p * q).collect::<Vec<_>>());
+        let mut total = 0.0f64;
+        for i in 0..mu0.len() {
+            let (m0, m1) = (mu0[i], mu1[i]);
+            let s00 = (e00[i] - m0 * m0).max(0.0);
+            let s11 = (e11[i] - m1 * m1).max(0.0);
+            let s01 = e01[i] - m0 * m1;
+            let s01 = sign(s01) * (s00 * s11).sqrt().min(s01.abs());
+            let numer = (2.0 * m0 * m1 + c1) * (2.0 * s01 + c2);
+            let denom = (m0 * m0 + m1 * m1 + c1) * (s00 + s11 + c2);
+            total += numer / denom;
+        }
+        total
+    };
+    // Channels in parallel, summed in channel order (deterministic).
+    let sums: Vec<f64> = (0..3).into_par_iter().map(channel).collect();
+    let total: f64 = sums.iter().sum();
+    Ok(total / (3 * (w - WINDOW + 1) * (h - WINDOW + 1)) as f64)
+}
+
+/// `jnp.sign`: −1, 0 or 1.
+fn sign(v: f64) -> f64 {
+    if v > 0.0 {
+        1.0
+    } else if v < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
+/// The two-pass partial convolution of one image size and mask, with the mask sums of
+/// both passes precomputed.
+struct Blur {
+    w: usize,
+    h: usize,
+    f: [f64; WINDOW],
+    /// `[H, W]` pixel mask of the first pass.
+    mask: Vec<f64>,
+    /// `[H, W − 10]` first-pass factor `11 / m'` (0 where `m' = 0`).
+    scale1: Vec<f64>,
+    /// `[H − 10, W − 10]` second-pass factor `11 / m''` (0 where `m'' = 0`).
+    scale2: Vec<f64>,
+}
+
+impl Blur {
+    fn new(w: usize, h: usize, mask: Option<&[f32]>) -> Blur {
+        let mask: Vec<f64> = match mask {
+            Some(m) => m.iter().map(|v| *v as f64).collect(),
+            None => vec![1.0; w * h],
+        };
+        let (w1, h1) = (w - WINDOW + 1, h - WINDOW + 1);
+        let n = WINDOW as f64;
+        let factor = |s: f64| if s != 0.0 { n / s } else { 0.0 };
+        let mut scale1 = vec![0.0; h * w1];
+        for y in 0..h {
+            for x in 0..w1 {
+                let s: f64 = mask[y * w + x..y * w + x + WINDOW].iter().sum();
+                scale1[y * w1 + x] = factor(s);
+            }
+        }
+        let mut scale2 = vec![0.0; h1 * w1];
+        for y in 0..h1 {
+            for x in 0..w1 {
+                let s: f64 =
+                    (0..WINDOW).map(|k| (scale1[(y + k) * w1 + x] != 0.0) as u8 as f64).sum();
+                scale2[y * w1 + x] = factor(s);
+            }
+        }
+        Blur { w, h, f: window(), mask, scale1, scale2 }
+    }
+
+    /// `blur(z, m)` of `z` `[H, W]`: `[H − 10, W − 10]`.
+    fn apply(&self, z: &[f64]) -> Vec<f64> {
+        let (w, h) = (self.w, self.h);
+        let (w1, h1) = (w - WINDOW + 1, h - WINDOW + 1);
+        let zm: Vec<f64> = z.iter().zip(&self.mask).map(|(v, m)| v * m).collect();
+        // Loops run over k outside and x inside (vectorisable); each output still sums its
+        // taps in order k = 0..10. Where the mask sum is 0 the factor is 0, and so is the
+        // output.
+        let mut pass1 = vec![0.0; h * w1];
+        for y in 0..h {
+            let row = &zm[y * w..(y + 1) * w];
+            let acc = &mut pass1[y * w1..(y + 1) * w1];
+            for (k, f) in self.f.iter().enumerate() {
+                for (a, v) in acc.iter_mut().zip(&row[k..k + w1]) {
+                    *a += f * v;
+                }
+            }
+            for (a, s) in acc.iter_mut().zip(&self.scale1[y * w1..(y + 1) * w1]) {
+                *a *= s;
+            }
+        }
+        let mut out = vec![0.0; h1 * w1];
+        for y in 0..h1 {
+            let acc = &mut out[y * w1..(y + 1) * w1];
+            for (k, f) in self.f.iter().enumerate() {
+                for (a, v) in acc.iter_mut().zip(&pass1[(y + k) * w1..(y + k + 1) * w1]) {
+                    *a += f * v;
+                }
+            }
+            for (a, s) in acc.iter_mut().zip(&self.scale2[y * w1..(y + 1) * w1]) {
+                *a *= s;
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A deterministic pseudo-random image (splitmix64).
+    fn noise(w: usize, h: usize, seed: u64) -> Image {
+        let mut s = seed;
+        let data = (0..w * h * 3)
+            .map(|_| {
+                s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+                let mut z = s;
+                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+                ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+            })
+            .collect();
+        Image { width: w, height: h, channels: 3, data }
+    }
+
+    /// Direct 2-D windowed SSIM (valid mode, no mask), written independently.
+    fn naive_ssim(a: &Image, b: &Image) -> f64 {
+        let f = window();
+        let (w, h) = (a.width, a.height);
+        let mut total = 0.0;
+        let mut count = 0;
+        for c in 0..3 {
+            for y in 0..=h - WINDOW {
+                for x in 0..=w - WINDOW {
+                    let (mut m0, mut m1, mut e00, mut e11, mut e01) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                    for i in 0..WINDOW {
+                        for j in 0..WINDOW {
+                            let wgt = f[i] * f[j];
+                            let p = a.at(x + j, y + i, c) as f64;
+                            let q = b.at(x + j, y + i, c) as f64;
+                            m0 += wgt * p;
+                            m1 += wgt * q;
+                            e00 += wgt * p * p;
+                            e11 += wgt * q * q;
+                            e01 += wgt * p * q;
+                        }
+                    }
+                    let (s00, s11, s01) = (e00 - m0 * m0, e11 - m1 * m1, e01 - m0 * m1);
+                    let (c1, c2) = (K1 * K1, K2 * K2);
+                    total += (2.0 * m0 * m1 + c1) * (2.0 * s01 + c2)
+                        / ((m0 * m0 + m1 * m1 + c1) * (s00 + s11 + c2));
+                    count += 1;
+                }
+            }
+        }
+        total / count as f64
+    }
+
+    #[test]
+    fn window_is_normalised_and_symmetric() {
+        let f = window();
+        assert!((f.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        assert_eq!(f[0], f[10]);
+        assert!((f[5] - 0.266_011_2).abs() < 1e-6, "centre tap {}", f[5]);
+    }
+
+    #[test]
+    fn identical_images_give_one() {
+        let a = noise(16, 13, 1);
+        assert!((ssim(&a, &a, None).unwrap() - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn matches_a_naive_direct_implementation() {
+        let a = noise(19, 14, 2);
+        let mut b = noise(19, 14, 3);
+        // Correlate b with a so that the covariance term matters.
+        for (q, p) in b.data.iter_mut().zip(&a.data) {
+            *q = 0.6 * *p + 0.4 * *q;
+        }
+        let got = ssim(&a, &b, None).unwrap();
+        let want = naive_ssim(&a, &b);
+        assert!((got - want).abs() < 1e-9, "{got} vs {want}");
+        assert!(got > 0.1 && got < 0.99, "{got}");
+    }
+
+    #[test]
+    fn full_mask_equals_unmasked_and_zero_mask_gives_one() {
+        let a = noise(15, 12, 4);
+        let b = noise(15, 12, 5);
+        let ones = vec![1.0; 15 * 12];
+        let (m, u) = (ssim(&a, &b, Some(&ones)).unwrap(), ssim(&a, &b, None).unwrap());
+        assert!((m - u).abs() < 1e-12, "{m} vs {u}");
+        let zeros = vec![0.0; 15 * 12];
+        assert_eq!(ssim(&a, &b, Some(&zeros)).unwrap(), 1.0);
+    }
+
+    #[test]
+    fn masked_pixels_do_not_matter() {
+        // Changing b where the mask is 0 leaves mSSIM unchanged.
+        let (w, h) = (14, 14);
+        let a = noise(w, h, 6);
+        let b = noise(w, h, 7);
+        let mask: Vec<f32> = (0..w * h).map(|i| if i % w < 7 { 1.0 } else { 0.0 }).collect();
+        let mut b2 = b.clone();
+        for i in 0..w * h {
+            if mask[i] == 0.0 {
+                b2.data[3 * i] = 1.0 - b2.data[3 * i];
+            }
+        }
+        let s1 = ssim(&a, &b, Some(&mask)).unwrap();
+        let s2 = ssim(&a, &b2, Some(&mask)).unwrap();
+        assert_eq!(s1, s2);
+        assert!(s1 < 1.0);
+    }
+
+    #[test]
+    fn too_small_is_an_error() {
+        let a = noise(10, 20, 8);
+        let e = ssim(&a, &a, None).unwrap_err().to_string();
+        assert_eq!(e, "ssim: image 10x20 is smaller than the metric's minimum 11x11");
+    }
+}
