@@ -312,3 +312,23 @@ fn same_bytes_whatever_the_thread_count() {
         assert!(a == b, "{} differs", a.0.display());
     }
 }
+
+#[test]
+fn bad_trajectory_spec_names_the_flag() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fox = fox();
+    let out = tmp.path().join("out");
+    let args = [
+        "--gltf",
+        fox.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--trajectory",
+        "colmap:x",
+    ];
+    let (code, err) = synth(&args);
+    assert_eq!(
+        (code, err.as_str()),
+        (2, "error: --trajectory: 'colmap:x' is not of the form dycheck:DIR\n")
+    );
+}

@@ -254,7 +254,9 @@ pub fn load(path: &Path) -> Result<Asset, Error> {
                 malformed(format!("mesh {} primitive {}: {msg}", m.index(), prim.index()))
             };
             let reader = prim.reader(get);
-            let Some(pos) = reader.read_positions() else { continue };
+            let Some(pos) = reader.read_positions() else {
+                return Err(ctx("POSITION is missing or lies outside its buffer"));
+            };
             let positions: Vec<Vec3> = pos.map(Vec3::from).collect();
             let nv = positions.len();
             let mat = prim.material().index().unwrap_or(default_material);

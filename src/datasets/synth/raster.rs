@@ -154,13 +154,21 @@ pub fn rasterize(view: &View, ss: usize, pos: &[Vec3], tris: &[[u32; 3]]) -> Sam
             let yb = ((t.hi.y - 0.5).floor() + 1.0).clamp(0.0, y1 as f32) as usize;
             let xa = (t.lo.x - 0.5).ceil().max(0.0) as usize;
             let xb = ((t.hi.x - 0.5).floor() + 1.0).clamp(0.0, sw as f32) as usize;
+            if xa >= xb {
+                continue;
+            }
+            // Normalised edge functions step by these per sample along x.
+            let step = |a: Vec2, b: Vec2| -(b.y - a.y) * t.inv_area;
+            let (d0, d1, d2) = (step(t.v[1], t.v[2]), step(t.v[2], t.v[0]), step(t.v[0], t.v[1]));
             for y in ya..yb {
                 let row = &mut rows[(y - y0) * sw..(y - y0 + 1) * sw];
+                let p = Vec2::new(xa as f32 + 0.5, y as f32 + 0.5);
+                let e0 = edge(t.v[1], t.v[2], p) * t.inv_area;
+                let e1 = edge(t.v[2], t.v[0], p) * t.inv_area;
+                let e2 = edge(t.v[0], t.v[1], p) * t.inv_area;
                 for x in xa..xb {
-                    let p = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-                    let l0 = edge(t.v[1], t.v[2], p) * t.inv_area;
-                    let l1 = edge(t.v[2], t.v[0], p) * t.inv_area;
-                    let l2 = edge(t.v[0], t.v[1], p) * t.inv_area;
+                    let k = (x - xa) as f32;
+                    let (l0, l1, l2) = (e0 + k * d0, e1 + k * d1, e2 + k * d2);
                     if l0 < 0.0 || l1 < 0.0 || l2 < 0.0 {
                         continue;
                     }

@@ -108,6 +108,15 @@ impl Texture {
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = (x - x0, y - y0);
         let (x0, y0) = (x0 as isize, y0 as isize);
+        let (w, h) = (self.width as isize, self.height as isize);
+        if x0 >= 0 && y0 >= 0 && x0 + 1 < w && y0 + 1 < h {
+            // Interior: no wrapping needed.
+            let i = y0 as usize * self.width + x0 as usize;
+            let t = &self.texels;
+            let top = t[i].lerp(t[i + 1], fx);
+            let bottom = t[i + self.width].lerp(t[i + self.width + 1], fx);
+            return top.lerp(bottom, fy);
+        }
         let t = |dx: isize, dy: isize| {
             let xi = wrap_coord(x0 + dx, self.width, wrap[0]);
             let yi = wrap_coord(y0 + dy, self.height, wrap[1]);
