@@ -100,7 +100,7 @@ pub fn frame_trees(kf: &KeyFrames) -> Vec<FrameTree> {
 
 impl FrameTree {
     /// The `m` eligible keys nearest to `q` (by kiddo) and the squared distance of the last.
-    fn nearest(&self, q: [f32; 3], m: usize) -> (Vec<u32>, f32) {
+    pub fn nearest(&self, q: [f32; 3], m: usize) -> (Vec<u32>, f32) {
         match (&self.tree, NonZero::new(m)) {
             (Some(tree), Some(m)) => {
                 let res = tree.query(&q).nearest_n::<SquaredEuclidean<f32>>(m).execute();
@@ -146,6 +146,9 @@ pub fn knn_at_frame(
     weighted: bool,
 ) -> Vec<(f32, u32)> {
     let total = tree.members.len();
+    if k == 0 {
+        return Vec::new();
+    }
     let mut m = (k + 1).min(total);
     loop {
         let (found, r2) = tree.nearest(q, m);
