@@ -88,17 +88,17 @@ fn usplat4d(dir: &Path, args: &[&str]) -> String {
     text
 }
 
-/// Run the three stages with `profile_args`; returns the ARI of the key segments and the
-/// edges file bytes.
-fn pipeline(dir: &Path, profile_args: &[&str], threads: &str) -> (f64, Vec<u8>) {
+/// Run the three stages with `profile` and extra edge arguments; returns the ARI of the
+/// segments and the edges file bytes.
+fn pipeline(dir: &Path, profile: &str, edge_args: &[&str], threads: &str) -> (f64, Vec<u8>) {
     let mut kn = vec!["--threads", threads, "keynodes", "--model", "model", "--uncertainty", "unc", "--out", "kn"];
-    kn.extend(profile_args);
+    kn.extend(["--profile", profile]);
     kn.extend(["--voxel-size", "0.15", "--candidates-per-frame", "30%"]);
     usplat4d(dir, &kn);
     let mut ed =
         vec!["--threads", threads, "edges", "--model", "model", "--uncertainty", "unc", "--keynodes", "kn", "--out", "ed"];
-    ed.extend(profile_args);
-    ed.extend(["--r-xyz", "1,1,1"]);
+    ed.extend(["--profile", profile, "--r-xyz", "1,1,1"]);
+    ed.extend(edge_args);
     usplat4d(dir, &ed);
     usplat4d(dir, &["segment", "--edges", "ed", "--out", "seg"]);
     let seg = usplat4d::tables::segments::read(&dir.join("seg/segments.parquet")).unwrap();
@@ -113,12 +113,12 @@ fn two_rigid_objects_are_segmented_apart() {
     let dir = tempfile::tempdir().unwrap();
     let (tr, _) = two_objects(5);
     write_inputs(dir.path(), &tr);
-    let (ari, one) = pipeline(dir.path(), &["--profile", "paper"], "1");
+    let (ari, one) = pipeline(dir.path(), "paper", &[], "1");
     assert!(ari > 0.9, "paper profile: ARI {ari}");
-    let (ari2, two) = pipeline(dir.path(), &["--profile", "paper"], "2");
+    let (ari2, two) = pipeline(dir.path(), "paper", &[], "2");
     assert_eq!(ari, ari2);
     assert!(one == two, "edges.parquet differs between 1 and 2 threads");
-    let (ari, _) = pipeline(dir.path(), &["--profile", "release", "--key-edge-weights", "rigidity"], "2");
+    let (ari, _) = pipeline(dir.path(), "release", &["--key-edge-weights", "rigidity", "--contrib-threshold", "1"], "2");
     assert!(ari > 0.9, "release profile with rigidity weights: ARI {ari}");
 }
 

@@ -126,7 +126,7 @@ pub struct EdgeParams {
     pub nonkey_weight_sharpness: Option<f64>,
     /// Anisotropy r_x,r_y,r_z of Eq. 6 [paper 1,1,0.01; release 1,1,0.1 (unused by its
     /// edges)].
-    #[arg(long, value_delimiter = ',', num_args = 3, help_heading = "Method")]
+    #[arg(long, value_delimiter = ',', help_heading = "Method")]
     #[serde(default)]
     pub r_xyz: Option<Vec<f64>>,
     /// Confidence mask of the release modes: normalised contribution > c, i.e. u < 1/c [2].
