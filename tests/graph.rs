@@ -20,7 +20,11 @@ const T: usize = 24;
 /// Two touching blobs: group 0 turns about z around its centre, group 1 slides along y.
 fn two_objects(seed: u64) -> (Tracks, Vec<u32>) {
     let mut rng = Rng::new(seed);
-    let mut tr = Tracks { ids: (0..N as u32).map(|i| 1000 + 3 * i).collect(), num_frames: T, ..Default::default() };
+    let mut tr = Tracks {
+        ids: (0..N as u32).map(|i| 1000 + 3 * i).collect(),
+        num_frames: T,
+        ..Default::default()
+    };
     let mut group = Vec::new();
     for i in 0..N {
         let g = (i % 2) as u32;
@@ -31,7 +35,11 @@ fn two_objects(seed: u64) -> (Tracks, Vec<u32>) {
         for t in 0..T {
             let p = if g == 0 {
                 let a = 0.08 * t as f64;
-                [c[0] + a.cos() * o[0] - a.sin() * o[1], c[1] + a.sin() * o[0] + a.cos() * o[1], c[2] + o[2]]
+                [
+                    c[0] + a.cos() * o[0] - a.sin() * o[1],
+                    c[1] + a.sin() * o[0] + a.cos() * o[1],
+                    c[2] + o[2],
+                ]
             } else {
                 [c[0] + o[0], c[1] + o[1] + 0.05 * t as f64, c[2] + o[2]]
             };
@@ -82,8 +90,10 @@ fn write_inputs(dir: &Path, tr: &Tracks) {
 }
 
 fn usplat4d(dir: &Path, args: &[&str]) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_usplat4d")).current_dir(dir).args(args).output().unwrap();
-    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    let out =
+        Command::new(env!("CARGO_BIN_EXE_usplat4d")).current_dir(dir).args(args).output().unwrap();
+    let text =
+        format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "usplat4d {args:?} failed:\n{text}");
     text
 }
@@ -91,12 +101,33 @@ fn usplat4d(dir: &Path, args: &[&str]) -> String {
 /// Run the three stages with `profile` and extra edge arguments; returns the ARI of the
 /// segments and the edges file bytes.
 fn pipeline(dir: &Path, profile: &str, edge_args: &[&str], threads: &str) -> (f64, Vec<u8>) {
-    let mut kn = vec!["--threads", threads, "keynodes", "--model", "model", "--uncertainty", "unc", "--out", "kn"];
+    let mut kn = vec![
+        "--threads",
+        threads,
+        "keynodes",
+        "--model",
+        "model",
+        "--uncertainty",
+        "unc",
+        "--out",
+        "kn",
+    ];
     kn.extend(["--profile", profile]);
     kn.extend(["--voxel-size", "0.15", "--candidates-per-frame", "30%"]);
     usplat4d(dir, &kn);
-    let mut ed =
-        vec!["--threads", threads, "edges", "--model", "model", "--uncertainty", "unc", "--keynodes", "kn", "--out", "ed"];
+    let mut ed = vec![
+        "--threads",
+        threads,
+        "edges",
+        "--model",
+        "model",
+        "--uncertainty",
+        "unc",
+        "--keynodes",
+        "kn",
+        "--out",
+        "ed",
+    ];
     ed.extend(["--profile", profile, "--r-xyz", "1,1,1"]);
     ed.extend(edge_args);
     usplat4d(dir, &ed);
@@ -105,7 +136,10 @@ fn pipeline(dir: &Path, profile: &str, edge_args: &[&str], threads: &str) -> (f6
     let (_, group) = two_objects(5);
     let truth: Vec<u32> = seg.id.iter().map(|id| group[((id - 1000) / 3) as usize]).collect();
     assert!(dir.join("seg/weights.png").exists());
-    (adjusted_rand_index(&seg.segment, &truth), std::fs::read(dir.join("ed/edges.parquet")).unwrap())
+    (
+        adjusted_rand_index(&seg.segment, &truth),
+        std::fs::read(dir.join("ed/edges.parquet")).unwrap(),
+    )
 }
 
 #[test]
@@ -118,7 +152,12 @@ fn two_rigid_objects_are_segmented_apart() {
     let (ari2, two) = pipeline(dir.path(), "paper", &[], "2");
     assert_eq!(ari, ari2);
     assert!(one == two, "edges.parquet differs between 1 and 2 threads");
-    let (ari, _) = pipeline(dir.path(), "release", &["--key-edge-weights", "rigidity", "--contrib-threshold", "1"], "2");
+    let (ari, _) = pipeline(
+        dir.path(),
+        "release",
+        &["--key-edge-weights", "rigidity", "--contrib-threshold", "1"],
+        "2",
+    );
     assert!(ari > 0.9, "release profile with rigidity weights: ARI {ari}");
 }
 
@@ -130,7 +169,17 @@ fn edges_name_the_missing_scene() {
     usplat4d(dir.path(), &["keynodes", "--model", "model", "--uncertainty", "unc", "--out", "kn"]);
     let out = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
         .current_dir(dir.path())
-        .args(["edges", "--model", "model", "--uncertainty", "unc", "--keynodes", "kn", "--out", "ed"])
+        .args([
+            "edges",
+            "--model",
+            "model",
+            "--uncertainty",
+            "unc",
+            "--keynodes",
+            "kn",
+            "--out",
+            "ed",
+        ])
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(2));

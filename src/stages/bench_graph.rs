@@ -70,7 +70,12 @@ fn default_checks() -> usize {
 
 /// A synthetic scene of `groups` rigid blobs: the tracks, the training cameras' R_cw `[T]`
 /// and the group of each Gaussian `[N]`.
-pub fn synthetic_tracks(n: usize, nt: usize, groups: usize, seed: u64) -> (Tracks, Vec<DMat3>, Vec<u32>) {
+pub fn synthetic_tracks(
+    n: usize,
+    nt: usize,
+    groups: usize,
+    seed: u64,
+) -> (Tracks, Vec<DMat3>, Vec<u32>) {
     let mut rng = Rng::new(seed);
     let groups = groups.max(1);
     let motion: Vec<(DVec3, DVec3, DVec3, f64)> = (0..groups)
@@ -142,7 +147,9 @@ pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
         p.groups,
         t0.elapsed().as_secs_f64()
     ));
-    println!("| profile | N | T | keys | keynodes s | edges s | total s | edges | exact (sampled non-keys) | threads |");
+    println!(
+        "| profile | N | T | keys | keynodes s | edges s | total s | edges | exact (sampled non-keys) | threads |"
+    );
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for &profile in &p.profiles {
         let mut ks = KeynodeSettings::defaults(profile);
@@ -212,10 +219,16 @@ fn check_sample(
         let want: Vec<u32> = if paper {
             let q: Vec<[f32; 3]> = (0..nt).map(|t| apply(&mats[t], tracks.pos(i, t))).collect();
             let u: Vec<f32> = (0..nt).map(|t| tracks.u(i, t)).collect();
-            search::argmin_sum_brute(&kf, &q, &u).map(|b| tracks.ids[key_rows[b.1 as usize]]).into_iter().collect()
+            search::argmin_sum_brute(&kf, &q, &u)
+                .map(|b| tracks.ids[key_rows[b.1 as usize]])
+                .into_iter()
+                .collect()
         } else {
             let p: Vec<[f32; 3]> = (0..nt).map(|t| tracks.pos(i, t)).collect();
-            search::knn_max_brute(&kf, &p, s.nonkey_k).into_iter().map(|b| tracks.ids[key_rows[b.1 as usize]]).collect()
+            search::knn_max_brute(&kf, &p, s.nonkey_k)
+                .into_iter()
+                .map(|b| tracks.ids[key_rows[b.1 as usize]])
+                .collect()
         };
         checked += 1;
         if (paper && got.first() == want.first()) || (!paper && got == want) {

@@ -36,7 +36,9 @@ use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::KeyNodes;
 
 /// How key → key neighbours are chosen (profile row 26; ablation (b)).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum KeyEdgeMode {
     /// UA-kNN, Eq. 7 (paper).
@@ -52,7 +54,9 @@ pub enum KeyEdgeMode {
 }
 
 /// Weights of key → key edges (profile row 27).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum KeyEdgeWeights {
     /// exp(−β·cv²) of the pair distance's coefficient of variation over time.
@@ -62,7 +66,9 @@ pub enum KeyEdgeWeights {
 }
 
 /// How non-key Gaussians are attached to keys (profile row 30).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum NonkeyAssignMode {
     /// Eq. 8, then E_i = E_j ∪ {j} (paper).
@@ -169,9 +175,17 @@ impl EdgeSettings {
             profile,
             key_edge_mode: if paper { KeyEdgeMode::UaKnn } else { KeyEdgeMode::MinmaxDistance },
             key_knn_k: if paper { 8 } else { 120 },
-            key_edge_weights: if paper { KeyEdgeWeights::Rigidity } else { KeyEdgeWeights::Uniform },
+            key_edge_weights: if paper {
+                KeyEdgeWeights::Rigidity
+            } else {
+                KeyEdgeWeights::Uniform
+            },
             rigidity_sharpness: 50.0,
-            nonkey_assign_mode: if paper { NonkeyAssignMode::ArgminSumMahalanobis } else { NonkeyAssignMode::KnnMaxDist },
+            nonkey_assign_mode: if paper {
+                NonkeyAssignMode::ArgminSumMahalanobis
+            } else {
+                NonkeyAssignMode::KnnMaxDist
+            },
             nonkey_k: 5,
             nonkey_weight_sharpness: 100.0,
             r_xyz: if paper { [1.0, 1.0, 0.01] } else { [1.0, 1.0, 0.1] },
@@ -194,7 +208,9 @@ impl EdgeParams {
         let d = EdgeSettings::defaults(self.profile);
         let r_xyz = match &self.r_xyz {
             None => d.r_xyz,
-            Some(v) if v.len() == 3 && v.iter().all(|x| x.is_finite() && *x > 0.0) => [v[0], v[1], v[2]],
+            Some(v) if v.len() == 3 && v.iter().all(|x| x.is_finite() && *x > 0.0) => {
+                [v[0], v[1], v[2]]
+            }
             Some(v) => anyhow::bail!("r-xyz: expected three positive numbers, got {v:?}"),
         };
         let s = EdgeSettings {
@@ -205,14 +221,16 @@ impl EdgeParams {
             rigidity_sharpness: self.rigidity_sharpness.unwrap_or(d.rigidity_sharpness),
             nonkey_assign_mode: self.nonkey_assign_mode.unwrap_or(d.nonkey_assign_mode),
             nonkey_k: self.nonkey_k.unwrap_or(d.nonkey_k),
-            nonkey_weight_sharpness: self.nonkey_weight_sharpness.unwrap_or(d.nonkey_weight_sharpness),
+            nonkey_weight_sharpness: self
+                .nonkey_weight_sharpness
+                .unwrap_or(d.nonkey_weight_sharpness),
             r_xyz,
             contrib_threshold: self.contrib_threshold.unwrap_or(d.contrib_threshold),
         };
         if s.key_knn_k == 0 || s.nonkey_k == 0 {
             anyhow::bail!("key-knn-k and nonkey-k must be at least 1");
         }
-        if !(s.contrib_threshold > 0.0) {
+        if s.contrib_threshold.is_nan() || s.contrib_threshold <= 0.0 {
             anyhow::bail!("contrib-threshold must be positive, got {}", s.contrib_threshold);
         }
         Ok(s)
@@ -224,7 +242,9 @@ impl EdgeParams {
 #[derive(Debug, thiserror::Error)]
 pub enum EdgeError {
     /// The key-node table does not list the tracks' Gaussians in order.
-    #[error("key_nodes: row {row} is Gaussian {found}, the uncertainty table has {expected} (run keynodes again)")]
+    #[error(
+        "key_nodes: row {row} is Gaussian {found}, the uncertainty table has {expected} (run keynodes again)"
+    )]
     KeyOrder {
         /// Row.
         row: usize,
@@ -242,7 +262,9 @@ pub enum EdgeError {
         expected: usize,
     },
     /// Camera rotations are needed but missing or of the wrong count.
-    #[error("the anisotropic metric needs one training-camera rotation per frame ({expected}), got {found} (pass --scene)")]
+    #[error(
+        "the anisotropic metric needs one training-camera rotation per frame ({expected}), got {found} (pass --scene)"
+    )]
     Rotations {
         /// Rotations given.
         found: usize,
@@ -263,7 +285,12 @@ pub enum EdgeError {
 
 /// Build the graph's edges from the tracks, the key nodes and (for the anisotropic metric)
 /// the training cameras' rotations R_cw `[T]`. Deterministic whatever the thread count.
-pub fn build(tracks: &Tracks, keys: &KeyNodes, rotations: &[DMat3], s: &EdgeSettings) -> Result<Edges, EdgeError> {
+pub fn build(
+    tracks: &Tracks,
+    keys: &KeyNodes,
+    rotations: &[DMat3],
+    s: &EdgeSettings,
+) -> Result<Edges, EdgeError> {
     let (n, nt) = (tracks.len(), tracks.num_frames);
     if keys.id.len() != n {
         return Err(EdgeError::KeyCount { found: keys.id.len(), expected: n });
@@ -286,15 +313,24 @@ pub fn build(tracks: &Tracks, keys: &KeyNodes, rotations: &[DMat3], s: &EdgeSett
     let key_rows: Vec<usize> = (0..n).filter(|&i| keys.is_key[i]).collect();
     let nonkey_rows: Vec<usize> = (0..n).filter(|&i| !keys.is_key[i]).collect();
     let u_mask = 1.0 / s.contrib_threshold;
-    let world = key_frames(tracks, &key_rows, |_, p| p, |tr, i, t| tr.u(i, t) < u_mask && tr.reliable(i, t));
-    let metric = key_frames(tracks, &key_rows, |t, p| apply(&mats[t], p), |tr, i, t| tr.reliable(i, t));
+    let world = key_frames(
+        tracks,
+        &key_rows,
+        |_, p| p,
+        |tr, i, t| tr.u(i, t) < u_mask && tr.reliable(i, t),
+    );
+    let metric =
+        key_frames(tracks, &key_rows, |t, p| apply(&mats[t], p), |tr, i, t| tr.reliable(i, t));
 
     let k = s.key_knn_k;
     let neighbours: Vec<Vec<(f32, u32)>> = match s.key_edge_mode {
         KeyEdgeMode::UaKnn | KeyEdgeMode::Euclidean | KeyEdgeMode::MaxContrib => {
             let (kf, weighted) = match s.key_edge_mode {
                 KeyEdgeMode::UaKnn => (metric.clone(), true),
-                KeyEdgeMode::Euclidean => (KeyFrames { eligible: vec![true; world.eligible.len()], ..world.clone() }, false),
+                KeyEdgeMode::Euclidean => (
+                    KeyFrames { eligible: vec![true; world.eligible.len()], ..world.clone() },
+                    false,
+                ),
                 _ => (world.clone(), false),
             };
             let trees = search::frame_trees(&kf);
@@ -322,9 +358,12 @@ pub fn build(tracks: &Tracks, keys: &KeyNodes, rotations: &[DMat3], s: &EdgeSett
         .enumerate()
         .map(|(a, nb)| match s.key_edge_weights {
             KeyEdgeWeights::Uniform => vec![1.0; nb.len()],
-            KeyEdgeWeights::Rigidity => {
-                nb.iter().map(|&(_, b)| (-s.rigidity_sharpness * distance_cv2(&positions, a, b as usize)).exp()).collect()
-            }
+            KeyEdgeWeights::Rigidity => nb
+                .iter()
+                .map(|&(_, b)| {
+                    (-s.rigidity_sharpness * distance_cv2(&positions, a, b as usize)).exp()
+                })
+                .collect(),
         })
         .collect();
 
@@ -335,7 +374,8 @@ pub fn build(tracks: &Tracks, keys: &KeyNodes, rotations: &[DMat3], s: &EdgeSett
             nonkey_rows
                 .par_iter()
                 .map(|&i| {
-                    let q: Vec<[f32; 3]> = (0..nt).map(|t| apply(&mats[t], tracks.pos(i, t))).collect();
+                    let q: Vec<[f32; 3]> =
+                        (0..nt).map(|t| apply(&mats[t], tracks.pos(i, t))).collect();
                     let u: Vec<f32> = (0..nt).map(|t| tracks.u(i, t)).collect();
                     let th = keys.t_hat[i] as usize;
                     let cand = trees[th].nearest(q[th], 2).0;
@@ -343,7 +383,14 @@ pub fn build(tracks: &Tracks, keys: &KeyNodes, rotations: &[DMat3], s: &EdgeSett
                         Some((_, j)) => {
                             let mut dst = vec![j];
                             dst.extend(neighbours[j as usize].iter().map(|c| c.1));
-                            nonkey_weights(tracks, &positions, i, th, &dst, s.nonkey_weight_sharpness)
+                            nonkey_weights(
+                                tracks,
+                                &positions,
+                                i,
+                                th,
+                                &dst,
+                                s.nonkey_weight_sharpness,
+                            )
                         }
                         None => Vec::new(),
                     }
@@ -368,7 +415,10 @@ pub fn build(tracks: &Tracks, keys: &KeyNodes, rotations: &[DMat3], s: &EdgeSett
                     let p: Vec<[f32; 3]> = (0..nt).map(|t| tracks.pos(i, t)).collect();
                     let th = keys.t_hat[i] as usize;
                     let cand = trees[th].nearest(p[th], s.nonkey_k).0;
-                    let dst: Vec<u32> = search::knn_max(&world, &tau, &p, s.nonkey_k, &cand).into_iter().map(|c| c.1).collect();
+                    let dst: Vec<u32> = search::knn_max(&world, &tau, &p, s.nonkey_k, &cand)
+                        .into_iter()
+                        .map(|c| c.1)
+                        .collect();
                     nonkey_weights(tracks, &positions, i, th, &dst, s.nonkey_weight_sharpness)
                 })
                 .collect()
@@ -380,16 +430,29 @@ pub fn build(tracks: &Tracks, keys: &KeyNodes, rotations: &[DMat3], s: &EdgeSett
         let total: f64 = key_weights[a].iter().sum();
         for (c, w) in nb.iter().zip(&key_weights[a]) {
             let w = if total > 0.0 { w / total } else { 1.0 / nb.len() as f64 };
-            edges.push(tracks.ids[key_rows[a]], tracks.ids[key_rows[c.1 as usize]], EdgeKind::KeyKey, w as f32);
+            edges.push(
+                tracks.ids[key_rows[a]],
+                tracks.ids[key_rows[c.1 as usize]],
+                EdgeKind::KeyKey,
+                w as f32,
+            );
         }
     }
     for (b, list) in nonkey_edges.iter().enumerate() {
         for &(dst, w) in list {
-            edges.push(tracks.ids[nonkey_rows[b]], tracks.ids[key_rows[dst as usize]], EdgeKind::NonkeyKey, w as f32);
+            edges.push(
+                tracks.ids[nonkey_rows[b]],
+                tracks.ids[key_rows[dst as usize]],
+                EdgeKind::NonkeyKey,
+                w as f32,
+            );
         }
     }
     Ok(edges)
 }
+
+/// One key's `[T]` positions, u and eligibility.
+type KeyColumns = (Vec<[f32; 3]>, Vec<f32>, Vec<bool>);
 
 /// The keys' `[K, T]` data: positions mapped by `map(t, p)`, u, and `eligible(tracks, i, t)`.
 fn key_frames(
@@ -399,7 +462,7 @@ fn key_frames(
     eligible: impl Fn(&Tracks, usize, usize) -> bool + Sync,
 ) -> KeyFrames {
     let nt = tracks.num_frames;
-    let per_key: Vec<(Vec<[f32; 3]>, Vec<f32>, Vec<bool>)> = key_rows
+    let per_key: Vec<KeyColumns> = key_rows
         .par_iter()
         .map(|&i| {
             (
@@ -421,7 +484,9 @@ fn key_frames(
 /// Squared coefficient of variation over time of the distance between keys `a` and `b`.
 fn distance_cv2(kf: &KeyFrames, a: usize, b: usize) -> f64 {
     let nt = kf.num_frames;
-    let d: Vec<f64> = (0..nt).map(|t| (search::dist2(kf.q[a * nt + t], kf.q[b * nt + t]) as f64).sqrt()).collect();
+    let d: Vec<f64> = (0..nt)
+        .map(|t| (search::dist2(kf.q[a * nt + t], kf.q[b * nt + t]) as f64).sqrt())
+        .collect();
     let mean = d.iter().sum::<f64>() / nt.max(1) as f64;
     let var = d.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / nt.max(1) as f64;
     if mean > 0.0 { var / (mean * mean) } else { 0.0 }
@@ -429,11 +494,22 @@ fn distance_cv2(kf: &KeyFrames, a: usize, b: usize) -> f64 {
 
 /// Normalised non-key weights exp(−λ d²), d the distance at the non-key's frame `t`,
 /// clamped to [1e-10, 1e10] before normalising (release `cal_weight_edges2`, θ = 1).
-fn nonkey_weights(tracks: &Tracks, keys: &KeyFrames, i: usize, t: usize, dst: &[u32], lambda: f64) -> Vec<(u32, f64)> {
+fn nonkey_weights(
+    tracks: &Tracks,
+    keys: &KeyFrames,
+    i: usize,
+    t: usize,
+    dst: &[u32],
+    lambda: f64,
+) -> Vec<(u32, f64)> {
     let p = tracks.pos(i, t);
     let w: Vec<f64> = dst
         .iter()
-        .map(|&j| (-lambda * search::dist2(p, keys.q[j as usize * keys.num_frames + t]) as f64).exp().clamp(1e-10, 1e10))
+        .map(|&j| {
+            (-lambda * search::dist2(p, keys.q[j as usize * keys.num_frames + t]) as f64)
+                .exp()
+                .clamp(1e-10, 1e10)
+        })
         .collect();
     let total: f64 = w.iter().sum();
     dst.iter().zip(w).map(|(&j, w)| (j, w / total)).collect()
@@ -459,10 +535,23 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
         ),
         _ => Vec::new(),
     };
-    let edges = build(&tracks, &keys, &rotations, &settings).map_err(|e| anyhow::anyhow!("{}: {e}", key_path.display()))?;
-    ctx.info(format!("edges: {} edges ({} keys, {} Gaussians)", edges.len(), keys.num_keys(), tracks.len()));
-    let prov = crate::tables::Provenance::new("edges", &serde_json::json!({ "params": p, "resolved": settings }));
-    crate::tables::edges::write(&p.out.join(crate::tables::edges::EdgesTable::file_name()), &edges, &prov)?;
+    let edges = build(&tracks, &keys, &rotations, &settings)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", key_path.display()))?;
+    ctx.info(format!(
+        "edges: {} edges ({} keys, {} Gaussians)",
+        edges.len(),
+        keys.num_keys(),
+        tracks.len()
+    ));
+    let prov = crate::tables::Provenance::new(
+        "edges",
+        &serde_json::json!({ "params": p, "resolved": settings }),
+    );
+    crate::tables::edges::write(
+        &p.out.join(crate::tables::edges::EdgesTable::file_name()),
+        &edges,
+        &prov,
+    )?;
     Ok(())
 }
 
@@ -494,7 +583,12 @@ mod tests {
                 let e = pool.install(|| build(&tracks, &keys, &rotations, &s)).unwrap();
                 let dir = tempfile::tempdir().unwrap();
                 let path = dir.path().join("edges.parquet");
-                crate::tables::edges::write(&path, &e, &crate::tables::Provenance::new("edges", &s)).unwrap();
+                crate::tables::edges::write(
+                    &path,
+                    &e,
+                    &crate::tables::Provenance::new("edges", &s),
+                )
+                .unwrap();
                 std::fs::read(path).unwrap()
             };
             assert_eq!(run(1), run(2), "{profile:?}");
@@ -509,18 +603,23 @@ mod tests {
         let nt = tracks.num_frames;
         let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
         let mats: Vec<Mat3> = rotations.iter().map(|r| metric_transform(s.r_xyz, *r)).collect();
-        let kf = key_frames(&tracks, &key_rows, |t, p| apply(&mats[t], p), |tr, i, t| tr.reliable(i, t));
+        let kf =
+            key_frames(&tracks, &key_rows, |t, p| apply(&mats[t], p), |tr, i, t| tr.reliable(i, t));
         let nonkey = (0..tracks.len()).find(|&i| !keys.is_key[i]).unwrap();
         let q: Vec<[f32; 3]> = (0..nt).map(|t| apply(&mats[t], tracks.pos(nonkey, t))).collect();
         let u: Vec<f32> = (0..nt).map(|t| tracks.u(nonkey, t)).collect();
         let j = tracks.ids[key_rows[argmin_sum_brute(&kf, &q, &u).unwrap().1 as usize]];
-        let out: Vec<u32> = (0..e.len()).filter(|&k| e.src[k] == tracks.ids[nonkey]).map(|k| e.dst[k]).collect();
-        let nbrs: Vec<u32> =
-            (0..e.len()).filter(|&k| e.src[k] == j && e.kind[k] == EdgeKind::KeyKey).map(|k| e.dst[k]).collect();
+        let out: Vec<u32> =
+            (0..e.len()).filter(|&k| e.src[k] == tracks.ids[nonkey]).map(|k| e.dst[k]).collect();
+        let nbrs: Vec<u32> = (0..e.len())
+            .filter(|&k| e.src[k] == j && e.kind[k] == EdgeKind::KeyKey)
+            .map(|k| e.dst[k])
+            .collect();
         assert_eq!(out[0], j);
         assert_eq!(out[1..], nbrs[..]);
         assert_eq!(nbrs.len(), s.key_knn_k);
-        let total: f32 = (0..e.len()).filter(|&k| e.src[k] == tracks.ids[nonkey]).map(|k| e.weight[k]).sum();
+        let total: f32 =
+            (0..e.len()).filter(|&k| e.src[k] == tracks.ids[nonkey]).map(|k| e.weight[k]).sum();
         assert!((total - 1.0).abs() < 1e-5);
     }
 
@@ -531,14 +630,26 @@ mod tests {
         let e = build(&tracks, &keys, &rotations, &s).unwrap();
         let nt = tracks.num_frames;
         let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
-        let kf = key_frames(&tracks, &key_rows, |_, p| p, |tr, i, t| tr.reliable(i, t) && tr.u(i, t) < 1.0);
+        let kf = key_frames(
+            &tracks,
+            &key_rows,
+            |_, p| p,
+            |tr, i, t| tr.reliable(i, t) && tr.u(i, t) < 1.0,
+        );
         for nonkey in (0..tracks.len()).filter(|&i| !keys.is_key[i]).take(20) {
             let p: Vec<[f32; 3]> = (0..nt).map(|t| tracks.pos(nonkey, t)).collect();
-            let want: Vec<u32> = knn_max_brute(&kf, &p, 5).iter().map(|c| tracks.ids[key_rows[c.1 as usize]]).collect();
-            let got: Vec<u32> = (0..e.len()).filter(|&k| e.src[k] == tracks.ids[nonkey]).map(|k| e.dst[k]).collect();
+            let want: Vec<u32> = knn_max_brute(&kf, &p, 5)
+                .iter()
+                .map(|c| tracks.ids[key_rows[c.1 as usize]])
+                .collect();
+            let got: Vec<u32> = (0..e.len())
+                .filter(|&k| e.src[k] == tracks.ids[nonkey])
+                .map(|k| e.dst[k])
+                .collect();
             assert_eq!(got, want);
         }
-        let per_key = (0..e.len()).filter(|&k| e.kind[k] == EdgeKind::KeyKey && e.src[k] == e.src[0]).count();
+        let per_key =
+            (0..e.len()).filter(|&k| e.kind[k] == EdgeKind::KeyKey && e.src[k] == e.src[0]).count();
         assert_eq!(per_key, s.key_knn_k.min(keys.num_keys() - 1));
     }
 
@@ -547,14 +658,28 @@ mod tests {
         let p = EdgeSettings::defaults(Profile::Paper);
         let r = EdgeSettings::defaults(Profile::Release);
         assert_eq!((p.key_knn_k, r.key_knn_k), (8, 120));
-        assert_eq!((p.key_edge_mode, r.key_edge_mode), (KeyEdgeMode::UaKnn, KeyEdgeMode::MinmaxDistance));
+        assert_eq!(
+            (p.key_edge_mode, r.key_edge_mode),
+            (KeyEdgeMode::UaKnn, KeyEdgeMode::MinmaxDistance)
+        );
         assert!(p.needs_rotations() && !r.needs_rotations());
         let yaml = "model: m\nuncertainty: u\nkeynodes: k\nout: o\nkey-edge-mode: euclidean\nr-xyz: [1, 1, 0.5]\n";
         let o: EdgeParams = serde_saphyr::from_str(yaml).unwrap();
         let s = o.resolve().unwrap();
         assert_eq!((s.key_edge_mode, s.r_xyz), (KeyEdgeMode::Euclidean, [1.0, 1.0, 0.5]));
-        let bad: EdgeParams = serde_saphyr::from_str("model: m\nuncertainty: u\nkeynodes: k\nout: o\nr-xyz: [1, 0]\n").unwrap();
-        assert_eq!(bad.resolve().unwrap_err().to_string(), "r-xyz: expected three positive numbers, got [1.0, 0.0]");
-        assert!(serde_saphyr::from_str::<EdgeParams>("model: m\nuncertainty: u\nkeynodes: k\nout: o\nk: 3\n").is_err());
+        let bad: EdgeParams = serde_saphyr::from_str(
+            "model: m\nuncertainty: u\nkeynodes: k\nout: o\nr-xyz: [1, 0]\n",
+        )
+        .unwrap();
+        assert_eq!(
+            bad.resolve().unwrap_err().to_string(),
+            "r-xyz: expected three positive numbers, got [1.0, 0.0]"
+        );
+        assert!(
+            serde_saphyr::from_str::<EdgeParams>(
+                "model: m\nuncertainty: u\nkeynodes: k\nout: o\nk: 3\n"
+            )
+            .is_err()
+        );
     }
 }

@@ -27,7 +27,9 @@ use crate::context::Context;
 use crate::tables::key_nodes::KeyNodes;
 
 /// How one Gaussian is picked in an occupied voxel (profile row 20).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum VoxelPick {
     /// Uniformly at random (seeded).
@@ -37,7 +39,9 @@ pub enum VoxelPick {
 }
 
 /// Where the per-frame candidate pool comes from (ablation (a) of the paper's Table 3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum CandidateSource {
     /// The most confident Gaussians (lowest u).
@@ -47,7 +51,9 @@ pub enum CandidateSource {
 }
 
 /// How candidates are thinned out of the pool (ablation (d) of the paper's Table 3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum CandidateSampling {
     /// One per occupied voxel of the 3D grid.
@@ -57,7 +63,9 @@ pub enum CandidateSampling {
 }
 
 /// How the significant period counts frames (profile row 21).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum SptCounting {
     /// Longest run of consecutive significant frames.
@@ -162,7 +170,11 @@ impl KeynodeSettings {
         let paper = profile == Profile::Paper;
         KeynodeSettings {
             profile,
-            candidates_per_frame: if paper { Amount::Fraction(0.02) } else { Amount::Value(1000.0) },
+            candidates_per_frame: if paper {
+                Amount::Fraction(0.02)
+            } else {
+                Amount::Value(1000.0)
+            },
             voxel_size: if paper { Amount::Fraction(0.02) } else { Amount::Value(0.2) },
             voxel_pick: if paper { VoxelPick::Random } else { VoxelPick::LowestContribution },
             candidate_source: CandidateSource::Uncertainty,
@@ -227,7 +239,8 @@ pub fn select(tracks: &Tracks, s: &KeynodeSettings) -> KeyNodes {
                 *p = tracks.pos(i, t);
             },
         );
-        let confident = confident_set(&u_t, &rel_t, s.candidates_per_frame.of(n as f64).ceil() as usize);
+        let confident =
+            confident_set(&u_t, &rel_t, s.candidates_per_frame.of(n as f64).ceil() as usize);
         let cut = confident.last().map_or(f32::NEG_INFINITY, |&i| u_t[i]);
         let threshold = cut.min(s.spt_u_max);
         period.par_iter_mut().enumerate().for_each(|(i, st)| {
@@ -246,7 +259,9 @@ pub fn select(tracks: &Tracks, s: &KeynodeSettings) -> KeyNodes {
         });
         let pool = match s.candidate_source {
             CandidateSource::Uncertainty => confident,
-            CandidateSource::Uniform => random_subset(0..n, confident.len(), s.seed, t as u64, &tracks.ids),
+            CandidateSource::Uniform => {
+                random_subset(0..n, confident.len(), s.seed, t as u64, &tracks.ids)
+            }
         };
         for i in frame_candidates(&pool, &p_t, &u_t, &tracks.ids, s, t as u64) {
             candidate[i] = true;
@@ -272,7 +287,12 @@ pub fn select(tracks: &Tracks, s: &KeynodeSettings) -> KeyNodes {
             }
         }
     }
-    KeyNodes { id: tracks.ids.clone(), is_key, t_hat: period.iter().map(|p| p.t_hat).collect(), significant_period: spt }
+    KeyNodes {
+        id: tracks.ids.clone(),
+        is_key,
+        t_hat: period.iter().map(|p| p.t_hat).collect(),
+        significant_period: spt,
+    }
 }
 
 /// The `count` reliable Gaussians of lowest u (ties: lower index first), in ascending u.
@@ -292,8 +312,15 @@ fn confident_set(u: &[f32], reliable: &[bool], count: usize) -> Vec<usize> {
 }
 
 /// `count` items of `items` chosen uniformly at random (smallest seeded keys), sorted.
-fn random_subset(items: impl Iterator<Item = usize>, count: usize, seed: u64, stream: u64, ids: &[u32]) -> Vec<usize> {
-    let mut keyed: Vec<(u64, usize)> = items.map(|i| (rank_key(seed, stream, ids[i] as u64), i)).collect();
+fn random_subset(
+    items: impl Iterator<Item = usize>,
+    count: usize,
+    seed: u64,
+    stream: u64,
+    ids: &[u32],
+) -> Vec<usize> {
+    let mut keyed: Vec<(u64, usize)> =
+        items.map(|i| (rank_key(seed, stream, ids[i] as u64), i)).collect();
     let count = count.min(keyed.len());
     if count < keyed.len() && count > 0 {
         keyed.select_nth_unstable(count - 1);
@@ -335,11 +362,19 @@ fn frame_candidates(
             }
             VoxelPick::LowestContribution => u[i].total_cmp(&u[j]).then(j.cmp(&i)).is_gt(),
         };
-        best.entry(voxel(p[i], size)).and_modify(|j| if better(*j) { *j = i }).or_insert(i);
+        best.entry(voxel(p[i], size))
+            .and_modify(|j| {
+                if better(*j) {
+                    *j = i
+                }
+            })
+            .or_insert(i);
     }
     match s.candidate_sampling {
         CandidateSampling::Voxel => best.into_values().collect(),
-        CandidateSampling::Random => random_subset(pool.iter().copied(), best.len(), s.seed, t ^ 0x5EED, ids),
+        CandidateSampling::Random => {
+            random_subset(pool.iter().copied(), best.len(), s.seed, t ^ 0x5EED, ids)
+        }
     }
 }
 
@@ -362,12 +397,23 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
     let _span = tracing::info_span!("keynodes").entered();
     let settings = p.resolve();
     let model = crate::model::Model::load(&p.model)?;
-    let unc = p.uncertainty.join(<crate::tables::uncertainty::UncertaintyTable as crate::tables::Table>::file_name());
+    let unc = p
+        .uncertainty
+        .join(<crate::tables::uncertainty::UncertaintyTable as crate::tables::Table>::file_name());
     let tracks = super::graph::load_tracks(&model, &unc, ctx)?;
     let keys = select(&tracks, &settings);
-    ctx.info(format!("keynodes: {} key nodes of {} Gaussians ({} frames)", keys.num_keys(), tracks.len(), tracks.num_frames));
-    let prov = crate::tables::Provenance::new("keynodes", &serde_json::json!({ "params": p, "resolved": settings }));
-    let out = p.out.join(<crate::tables::key_nodes::KeyNodesTable as crate::tables::Table>::file_name());
+    ctx.info(format!(
+        "keynodes: {} key nodes of {} Gaussians ({} frames)",
+        keys.num_keys(),
+        tracks.len(),
+        tracks.num_frames
+    ));
+    let prov = crate::tables::Provenance::new(
+        "keynodes",
+        &serde_json::json!({ "params": p, "resolved": settings }),
+    );
+    let out =
+        p.out.join(<crate::tables::key_nodes::KeyNodesTable as crate::tables::Table>::file_name());
     crate::tables::key_nodes::write(&out, &keys, &prov)?;
     Ok(())
 }
@@ -378,7 +424,11 @@ mod tests {
 
     /// N Gaussians on a line (x = i) for T frames, u given per (i, t).
     fn tracks(n: usize, nt: usize, u: impl Fn(usize, usize) -> f32) -> Tracks {
-        let mut tr = Tracks { ids: (0..n as u32).map(|i| 100 + i).collect(), num_frames: nt, ..Default::default() };
+        let mut tr = Tracks {
+            ids: (0..n as u32).map(|i| 100 + i).collect(),
+            num_frames: nt,
+            ..Default::default()
+        };
         for i in 0..n {
             for t in 0..nt {
                 tr.positions.push([i as f32, 0.0, 0.0]);
@@ -425,7 +475,11 @@ mod tests {
         assert_eq!(a, select(&tr, &s));
         let b = select(&tr, &KeynodeSettings { seed: 7, ..s.clone() });
         assert_ne!(a.is_key, b.is_key);
-        let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(|| select(&tr, &s));
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+            .install(|| select(&tr, &s));
         assert_eq!(a, one);
     }
 
@@ -458,8 +512,14 @@ mod tests {
         let r = settings(Profile::Release);
         assert_eq!(p.candidates_per_frame, Amount::Fraction(0.02));
         assert_eq!(r.candidates_per_frame, Amount::Value(1000.0));
-        assert_eq!((p.voxel_pick, r.voxel_pick), (VoxelPick::Random, VoxelPick::LowestContribution));
-        assert_eq!((p.spt_counting, r.spt_counting), (SptCounting::Consecutive, SptCounting::Total));
+        assert_eq!(
+            (p.voxel_pick, r.voxel_pick),
+            (VoxelPick::Random, VoxelPick::LowestContribution)
+        );
+        assert_eq!(
+            (p.spt_counting, r.spt_counting),
+            (SptCounting::Consecutive, SptCounting::Total)
+        );
         assert_eq!((p.max_key_nodes, r.max_key_nodes), (None, Some(1500)));
         assert_eq!(p.min_significant_period, r.min_significant_period);
         let yaml = "model: m\nuncertainty: u\nout: o\nprofile: release\nmax-key-nodes: 0\nvoxel-size: 5%\n";
@@ -486,10 +546,16 @@ mod tests {
         // confident Gaussians are 0..30 at x = 0..30 → 6 voxels, one key each.
         assert_eq!(full.num_keys(), 6);
         assert!((0..300).all(|i| !full.is_key[i] || i < 30));
-        let d = select(&tr, &KeynodeSettings { candidate_sampling: CandidateSampling::Random, ..s.clone() });
+        let d = select(
+            &tr,
+            &KeynodeSettings { candidate_sampling: CandidateSampling::Random, ..s.clone() },
+        );
         assert!((0..300).all(|i| !d.is_key[i] || i < 30));
         assert_ne!(d.is_key, full.is_key);
-        let a = select(&tr, &KeynodeSettings { candidate_source: CandidateSource::Uniform, ..s.clone() });
+        let a = select(
+            &tr,
+            &KeynodeSettings { candidate_source: CandidateSource::Uniform, ..s.clone() },
+        );
         assert!((30..300).any(|i| a.is_key[i]));
     }
 }

@@ -70,7 +70,8 @@ pub fn segment(edges: &Edges, k: Option<usize>, max_k: usize, seed: u64) -> Segm
         .collect();
     key_ids.sort_unstable();
     key_ids.dedup();
-    let index: BTreeMap<u32, u32> = key_ids.iter().enumerate().map(|(i, id)| (*id, i as u32)).collect();
+    let index: BTreeMap<u32, u32> =
+        key_ids.iter().enumerate().map(|(i, id)| (*id, i as u32)).collect();
     let nk = key_ids.len();
     let weights = SparseSym::symmetrised(
         nk,
@@ -103,12 +104,14 @@ pub fn segment(edges: &Edges, k: Option<usize>, max_k: usize, seed: u64) -> Segm
         let seg = labels[index[&edges.dst[e]] as usize];
         *votes.entry(edges.src[e]).or_default().entry(seg).or_insert(0.0) += edges.weight[e] as f64;
     }
-    let mut rows: Vec<(u32, u32, bool)> = key_ids.iter().zip(&labels).map(|(id, l)| (*id, *l, true)).collect();
+    let mut rows: Vec<(u32, u32, bool)> =
+        key_ids.iter().zip(&labels).map(|(id, l)| (*id, *l, true)).collect();
     for (id, v) in &votes {
         if index.contains_key(id) {
             continue;
         }
-        let seg = v.iter().max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(a.0))).map_or(0, |(s, _)| *s);
+        let seg =
+            v.iter().max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(a.0))).map_or(0, |(s, _)| *s);
         rows.push((*id, seg, false));
     }
     rows.sort_unstable();
@@ -156,7 +159,8 @@ pub fn run(p: &SegmentParams, ctx: &Context) -> anyhow::Result<()> {
     if p.k == Some(0) || p.max_k == 0 {
         anyhow::bail!("segment: --k and --max-k must be at least 1");
     }
-    let edges = crate::tables::edges::read(&p.edges.join(crate::tables::edges::EdgesTable::file_name()))?;
+    let edges =
+        crate::tables::edges::read(&p.edges.join(crate::tables::edges::EdgesTable::file_name()))?;
     let s = segment(&edges, p.k, p.max_k, p.seed);
     ctx.info(format!(
         "segment: {} segments over {} Gaussians ({} keys); leading eigenvalues {:?}",
@@ -165,8 +169,15 @@ pub fn run(p: &SegmentParams, ctx: &Context) -> anyhow::Result<()> {
         s.order.len(),
         s.eigenvalues.iter().map(|v| (v * 1e4).round() / 1e4).collect::<Vec<_>>()
     ));
-    let prov = crate::tables::Provenance::new("segment", &serde_json::json!({ "params": p, "resolved": { "k": s.k } }));
-    crate::tables::segments::write(&p.out.join(crate::tables::segments::SegmentsTable::file_name()), &s.segments, &prov)?;
+    let prov = crate::tables::Provenance::new(
+        "segment",
+        &serde_json::json!({ "params": p, "resolved": { "k": s.k } }),
+    );
+    crate::tables::segments::write(
+        &p.out.join(crate::tables::segments::SegmentsTable::file_name()),
+        &s.segments,
+        &prov,
+    )?;
     crate::image_io::write_png(&p.out.join("weights.png"), &weight_image(&s, 1024))?;
     Ok(())
 }

@@ -29,11 +29,16 @@ use std::path::PathBuf;
 use super::graph::Profile;
 use crate::context::Context;
 use crate::image_io::Image;
-use crate::render::{ColorSource, CpuRenderer, RenderAux, RenderCamera, RenderSettings, Renderer, ShFrame, SplatInputs};
+use crate::render::{
+    ColorSource, CpuRenderer, RenderAux, RenderCamera, RenderSettings, Renderer, ShFrame,
+    SplatInputs,
+};
 use crate::tables::uncertainty::UncertaintyFrame;
 
 /// Which pixels a Gaussian's convergence indicator tests (profile row 4).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Gate {
     /// Product over all covered pixels (paper).
@@ -43,7 +48,9 @@ pub enum Gate {
 }
 
 /// How the L1 colour error combines channels (profile row 6).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum ChannelReduce {
     /// ‖C̄ − C‖₁ summed over RGB (paper).
@@ -53,7 +60,9 @@ pub enum ChannelReduce {
 }
 
 /// Which Gaussians get an uncertainty (profile row 3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Scope {
     /// Every Gaussian (paper).
@@ -174,7 +183,7 @@ impl UncertaintyParams {
     pub fn resolve(&self) -> anyhow::Result<UncertaintySettings> {
         let d = UncertaintySettings::defaults(self.profile);
         let off = |v: Option<f32>, d: Option<f32>| match v {
-            Some(x) if x == 0.0 => None,
+            Some(0.0) => None,
             Some(x) => Some(x),
             None => d,
         };
@@ -194,7 +203,11 @@ impl UncertaintyParams {
         if !(s.phi.is_finite() && s.phi > 0.0) {
             anyhow::bail!("phi must be positive and finite, got {}", s.phi);
         }
-        if !(s.eta_c > 0.0) || !(s.contrib_clip_max > 0.0) {
+        if s.eta_c.is_nan()
+            || s.eta_c <= 0.0
+            || s.contrib_clip_max.is_nan()
+            || s.contrib_clip_max <= 0.0
+        {
             anyhow::bail!("eta-c and contrib-clip-max must be positive");
         }
         if let Some(p) = s.depth_edge_percentile
@@ -225,7 +238,13 @@ pub fn pixel_pass(rendered: &[f32], truth: &[f32], eta_c: f32, reduce: ChannelRe
 /// Eqs. 3 and 5 for one frame: u = 1/Σ(Tα)² (clamped to φ) where the Gaussian touched a
 /// pixel and its indicator holds, φ otherwise. `indicator` `[N]` is 𝟙_{i,t}; `rows` picks
 /// the listed Gaussians (canonical indices).
-pub fn frame_uncertainty(t: u32, aux: &RenderAux, indicator: &[bool], rows: &[usize], phi: f32) -> UncertaintyFrame {
+pub fn frame_uncertainty(
+    t: u32,
+    aux: &RenderAux,
+    indicator: &[bool],
+    rows: &[usize],
+    phi: f32,
+) -> UncertaintyFrame {
     let mut f = UncertaintyFrame { frame: t, ..Default::default() };
     for &i in rows {
         let s = aux.sum_w2[i];
@@ -249,15 +268,20 @@ fn quantile(v: &mut [f32], q: f64) -> f32 {
     let lo = pos.floor() as usize;
     let hi = (lo + 1).min(v.len() - 1);
     let a = *v.select_nth_unstable_by(lo, f32::total_cmp).1;
-    let b = if hi == lo { a } else { *v[lo + 1..].iter().min_by(|x, y| x.total_cmp(y)).unwrap_or(&a) };
+    let b =
+        if hi == lo { a } else { *v[lo + 1..].iter().min_by(|x, y| x.total_cmp(y)).unwrap_or(&a) };
     (a as f64 + (b as f64 - a as f64) * (pos - lo as f64)) as f32
 }
 
 /// Release normalisation (official-release.md Sec. 2.3) of all frames in place; returns the
 /// scale applied to the contributions (1 when none).
 pub fn normalise(frames: &mut [UncertaintyFrame], target: f32, clip: f32, phi: f32) -> f32 {
-    let mut c: Vec<f32> =
-        frames.iter().flat_map(|f| f.u.iter().zip(&f.converged).map(|(u, ok)| if *ok { 1.0 / u } else { 1.0 / phi })).collect();
+    let mut c: Vec<f32> = frames
+        .iter()
+        .flat_map(|f| {
+            f.u.iter().zip(&f.converged).map(|(u, ok)| if *ok { 1.0 / u } else { 1.0 / phi })
+        })
+        .collect();
     let c80 = quantile(&mut c, 0.80);
     let c99 = quantile(&mut c, 0.99);
     let band: Vec<f64> = c.iter().filter(|v| **v > c80 && **v < c99).map(|v| *v as f64).collect();
@@ -283,7 +307,8 @@ pub fn normalise(frames: &mut [UncertaintyFrame], target: f32, clip: f32, phi: f
 /// ('same') padding, C1 = 0.01², C2 = 0.03².
 pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
     let g: Vec<f32> = {
-        let k: Vec<f32> = (0..11).map(|i| (-((i as f32 - 5.0).powi(2)) / (2.0 * 1.5 * 1.5)).exp()).collect();
+        let k: Vec<f32> =
+            (0..11).map(|i| (-((i as f32 - 5.0).powi(2)) / (2.0 * 1.5 * 1.5)).exp()).collect();
         let s: f32 = k.iter().sum();
         k.iter().map(|v| v / s).collect()
     };
@@ -293,14 +318,18 @@ pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
         for y in 0..h {
             for xx in 0..w {
                 tmp[y * w + xx] = (0..11)
-                    .filter_map(|k| (xx + k).checked_sub(5).filter(|&c| c < w).map(|c| g[k] * x[y * w + c]))
+                    .filter_map(|k| {
+                        (xx + k).checked_sub(5).filter(|&c| c < w).map(|c| g[k] * x[y * w + c])
+                    })
                     .sum();
             }
         }
         for y in 0..h {
             for xx in 0..w {
                 out[y * w + xx] = (0..11)
-                    .filter_map(|k| (y + k).checked_sub(5).filter(|&r| r < h).map(|r| g[k] * tmp[r * w + xx]))
+                    .filter_map(|k| {
+                        (y + k).checked_sub(5).filter(|&r| r < h).map(|r| g[k] * tmp[r * w + xx])
+                    })
                     .sum();
             }
         }
@@ -316,7 +345,8 @@ pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
         let xy: Vec<f32> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
         let (mx, my, sxx, syy, sxy) = (blur(&x), blur(&y), blur(&xx), blur(&yy), blur(&xy));
         for i in 0..w * h {
-            let (vx, vy, cv) = (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
+            let (vx, vy, cv) =
+                (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
             out[i * 3 + c] = ((2.0 * mx[i] * my[i] + c1) * (2.0 * cv + c2))
                 / ((mx[i] * mx[i] + my[i] * my[i] + c1) * (vx + vy + c2));
         }
@@ -326,7 +356,9 @@ pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
 
 /// Sobel gradient magnitude `[H, W]` of a depth map `[H, W]` (edges replicated).
 pub fn sobel_magnitude(d: &[f32], w: usize, h: usize) -> Vec<f32> {
-    let at = |x: isize, y: isize| d[(y.clamp(0, h as isize - 1) as usize) * w + x.clamp(0, w as isize - 1) as usize];
+    let at = |x: isize, y: isize| {
+        d[(y.clamp(0, h as isize - 1) as usize) * w + x.clamp(0, w as isize - 1) as usize]
+    };
     let mut out = vec![0.0; w * h];
     for y in 0..h as isize {
         for x in 0..w as isize {
@@ -363,7 +395,8 @@ pub fn apply_gates(
     }
     if let (Some(pct), Some(d)) = (s.depth_edge_percentile, depth) {
         let g = sobel_magnitude(d, w, h);
-        let mut inside: Vec<f32> = g.iter().zip(mask).filter(|(_, m)| **m).map(|(v, _)| *v).collect();
+        let mut inside: Vec<f32> =
+            g.iter().zip(mask).filter(|(_, m)| **m).map(|(v, _)| *v).collect();
         if !inside.is_empty() {
             let limit = quantile(&mut inside, pct as f64 / 100.0);
             for (p, v) in pass.iter_mut().zip(&g) {
@@ -396,12 +429,18 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
         );
     }
     let g = &model.gaussians;
-    let rows: Vec<usize> = (0..g.len()).filter(|&i| s.scope == Scope::All || g.dynamic[i]).collect();
+    let rows: Vec<usize> =
+        (0..g.len()).filter(|&i| s.scope == Scope::All || g.dynamic[i]).collect();
     let ids: Vec<u32> = rows.iter().map(|&i| g.id[i]).collect();
     let colors = if g.sh_degree == 0 {
         ColorSource::Rgb(&g.color)
     } else {
-        ColorSource::Sh { degree: g.sh_degree, dc: &g.color, rest: &g.sh_rest, frame: ShFrame::World }
+        ColorSource::Sh {
+            degree: g.sh_degree,
+            dc: &g.color,
+            rest: &g.sh_rest,
+            frame: ShFrame::World,
+        }
     };
     let settings = RenderSettings::default();
     let renderer = CpuRenderer;
@@ -420,12 +459,19 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
             num_features: 0,
         };
         let camera = RenderCamera::from(*cam);
-        let out = renderer.render(&camera, &inputs, &settings).map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
+        let out = renderer
+            .render(&camera, &inputs, &settings)
+            .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
         let (w, h) = (cam.width as usize, cam.height as usize);
         let image_path = scene.resolve(&cam.image_path);
         let truth = crate::image_io::read_png(&image_path)?.rgb_over(settings.background);
         if truth.width != w || truth.height != h {
-            anyhow::bail!("{}: image is {}x{}, the camera says {w}x{h}", image_path.display(), truth.width, truth.height);
+            anyhow::bail!(
+                "{}: image is {}x{}, the camera says {w}x{h}",
+                image_path.display(),
+                truth.width,
+                truth.height
+            );
         }
         let mut pass = pixel_pass(&out.color, &truth.data, s.eta_c, s.channel_reduce);
         let mask = match &cam.mask_path {
@@ -439,7 +485,9 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
             (Some(d), Some(_)) => Some(crate::image_io::read_npy_f32(&scene.resolve(d))?.1),
             (None, Some(_)) if !warned_depth => {
                 warned_depth = true;
-                ctx.warn(format!("uncertainty: frame {t} has no depth map; the depth-edge gate is not applied"));
+                ctx.warn(format!(
+                    "uncertainty: frame {t} has no depth map; the depth-edge gate is not applied"
+                ));
                 None
             }
             _ => None,
@@ -470,7 +518,10 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
         frames.len(),
         100.0 * converged as f64 / (ids.len() * frames.len()).max(1) as f64
     ));
-    let prov = crate::tables::Provenance::new("uncertainty", &serde_json::json!({ "params": p, "resolved": s, "scale": scale }));
+    let prov = crate::tables::Provenance::new(
+        "uncertainty",
+        &serde_json::json!({ "params": p, "resolved": s, "scale": scale }),
+    );
     let path = p.out.join(crate::tables::uncertainty::UncertaintyTable::file_name());
     let mut w = crate::tables::uncertainty::UncertaintyWriter::create(&path, &ids, &prov)?;
     for f in &frames {
@@ -486,7 +537,13 @@ mod tests {
 
     fn aux(sum_w2: Vec<f32>, n_pixels: Vec<u32>) -> RenderAux {
         let n = sum_w2.len();
-        RenderAux { visible: vec![true; n], radius_px: vec![1.0; n], sum_w: vec![1.0; n], sum_w2, n_pixels }
+        RenderAux {
+            visible: vec![true; n],
+            radius_px: vec![1.0; n],
+            sum_w: vec![1.0; n],
+            sum_w2,
+            n_pixels,
+        }
     }
 
     #[test]

@@ -120,8 +120,9 @@ pub fn read(path: &Path) -> Result<Edges> {
     };
     let mut kind = Vec::with_capacity(src.len());
     for (i, k) in c.strings("kind")?.iter().enumerate() {
-        let k = EdgeKind::parse(k)
-            .ok_or_else(|| value_err("kind", i, format!("unknown kind '{k}' (key-key or nonkey-key)")))?;
+        let k = EdgeKind::parse(k).ok_or_else(|| {
+            value_err("kind", i, format!("unknown kind '{k}' (key-key or nonkey-key)"))
+        })?;
         kind.push(k);
     }
     if let Some(i) = (0..src.len()).find(|&i| src[i] == dst[i]) {
@@ -148,6 +149,9 @@ mod tests {
         e.push(3, 3, EdgeKind::NonkeyKey, 1.0);
         write(&path, &e, &Provenance::default()).unwrap();
         let err = read(&path).unwrap_err().to_string();
-        assert_eq!(err, format!("{}: column 'dst', row 4: self-loop on Gaussian 3", path.display()));
+        assert_eq!(
+            err,
+            format!("{}: column 'dst', row 4: self-loop on Gaussian 3", path.display())
+        );
     }
 }

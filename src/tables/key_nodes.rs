@@ -97,7 +97,10 @@ mod tests {
         let err = read(&path).unwrap_err().to_string();
         assert_eq!(
             err,
-            format!("{}: column 'gaussian_id', row 2: duplicate id 4 (first at row 0)", path.display())
+            format!(
+                "{}: column 'gaussian_id', row 2: duplicate id 4 (first at row 0)",
+                path.display()
+            )
         );
     }
 }

@@ -56,7 +56,11 @@ pub fn read(path: &Path) -> Result<Segments> {
     let c = Columns::new(path, &b);
     let id = c.values::<UInt32Type>("gaussian_id")?;
     validate::unique_ids(path, "gaussian_id", 0, id)?;
-    Ok(Segments { id: id.to_vec(), segment: c.values::<UInt32Type>("segment")?.to_vec(), is_key: c.bools("is_key")? })
+    Ok(Segments {
+        id: id.to_vec(),
+        segment: c.values::<UInt32Type>("segment")?.to_vec(),
+        is_key: c.bools("is_key")?,
+    })
 }
 
 #[cfg(test)]
@@ -67,14 +71,21 @@ mod tests {
     fn round_trip_and_duplicate_id() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("segments.parquet");
-        let s = Segments { id: vec![0, 1, 2], segment: vec![1, 0, 1], is_key: vec![true, false, false] };
+        let s = Segments {
+            id: vec![0, 1, 2],
+            segment: vec![1, 0, 1],
+            is_key: vec![true, false, false],
+        };
         write(&path, &s, &Provenance::default()).unwrap();
         assert_eq!(read(&path).unwrap(), s);
         write(&path, &Segments { id: vec![0, 0, 2], ..s }, &Provenance::default()).unwrap();
         let err = read(&path).unwrap_err().to_string();
         assert_eq!(
             err,
-            format!("{}: column 'gaussian_id', row 1: duplicate id 0 (first at row 0)", path.display())
+            format!(
+                "{}: column 'gaussian_id', row 1: duplicate id 0 (first at row 0)",
+                path.display()
+            )
         );
     }
 }

@@ -161,7 +161,10 @@ impl UncertaintyReader {
                 path: path.into(),
                 column: "gaussian_id".into(),
                 row: row0 + i as u64,
-                msg: format!("id {} where frame 0 has {} (every frame lists the same order)", id[i], self.ids[i]),
+                msg: format!(
+                    "id {} where frame 0 has {} (every frame lists the same order)",
+                    id[i], self.ids[i]
+                ),
             });
         }
         let sum_w2 = c.values::<Float32Type>("sum_w2")?;
@@ -228,15 +231,22 @@ mod tests {
         w.write(&frame(1, vec![0.5, 0.0, 1.0])).unwrap();
         w.finish().unwrap();
         let err = UncertaintyReader::open(&path).unwrap().frame(1).unwrap_err().to_string();
-        assert_eq!(err, format!("{}: column 'u', row 4: uncertainty 0 is not positive", path.display()));
+        assert_eq!(
+            err,
+            format!("{}: column 'u', row 4: uncertainty 0 is not positive", path.display())
+        );
     }
 
     #[test]
     fn wrong_table_names_the_missing_columns() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("x.parquet");
-        crate::tables::key_nodes::write(&path, &crate::tables::key_nodes::KeyNodes::default(), &Provenance::default())
-            .unwrap();
+        crate::tables::key_nodes::write(
+            &path,
+            &crate::tables::key_nodes::KeyNodes::default(),
+            &Provenance::default(),
+        )
+        .unwrap();
         let err = UncertaintyReader::open(&path).err().unwrap().to_string();
         assert!(err.contains("it is a 'key_nodes' table"), "{err}");
         assert!(err.contains("missing column 'sum_w2' (f32)"), "{err}");

@@ -18,7 +18,17 @@ use crate::model::Model;
 use crate::tables::uncertainty::UncertaintyReader;
 
 /// Which defaults a stage's unset parameters take (official-release.md, Sec. 11).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Deserialize, serde::Serialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    clap::ValueEnum,
+    serde::Deserialize,
+    serde::Serialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Profile {
     /// Follow arXiv 2510.12768 where it is specific.
@@ -51,7 +61,8 @@ impl Amount {
 impl std::str::FromStr for Amount {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        let bad = || format!("'{s}' is not a non-negative number or percentage (e.g. 1000, 0.2, 2%)");
+        let bad =
+            || format!("'{s}' is not a non-negative number or percentage (e.g. 1000, 0.2, 2%)");
         let (num, pct) = match s.trim().strip_suffix('%') {
             Some(n) => (n, true),
             None => (s.trim(), false),
@@ -188,7 +199,11 @@ impl Tracks {
 }
 
 /// Load the tracks of the Gaussians of `uncertainty_file` from `model`, frame by frame.
-pub fn load_tracks(model: &Model, uncertainty_file: &Path, ctx: &crate::context::Context) -> anyhow::Result<Tracks> {
+pub fn load_tracks(
+    model: &Model,
+    uncertainty_file: &Path,
+    ctx: &crate::context::Context,
+) -> anyhow::Result<Tracks> {
     let unc = UncertaintyReader::open(uncertainty_file)?;
     let nt = unc.num_frames();
     if nt != model.num_frames() {

@@ -89,10 +89,12 @@ pub fn frame_trees(kf: &KeyFrames) -> Vec<FrameTree> {
     (0..kf.num_frames)
         .into_par_iter()
         .map(|t| {
-            let members: Vec<u32> = (0..kf.num_keys).filter(|&l| kf.eligible[kf.at(l, t)]).map(|l| l as u32).collect();
+            let members: Vec<u32> =
+                (0..kf.num_keys).filter(|&l| kf.eligible[kf.at(l, t)]).map(|l| l as u32).collect();
             let pts: Vec<[f32; 3]> = members.iter().map(|&l| kf.q[kf.at(l as usize, t)]).collect();
             let u_max = members.iter().map(|&l| kf.u[kf.at(l as usize, t)]).fold(0.0f32, f32::max);
-            let tree = if pts.is_empty() { None } else { ImmutableKdTree::new_from_slice(&pts).ok() };
+            let tree =
+                if pts.is_empty() { None } else { ImmutableKdTree::new_from_slice(&pts).ok() };
             FrameTree { tree, members, u_max }
         })
         .collect()
@@ -228,15 +230,18 @@ pub fn leaves(kf: &KeyFrames, size: usize) -> Leaves {
         let axis = (0..3)
             .max_by(|&a, &b| {
                 let ext = |k: usize| {
-                    let (lo, hi) = g.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &l| {
-                        (lo.min(mean[l as usize][k]), hi.max(mean[l as usize][k]))
-                    });
+                    let (lo, hi) =
+                        g.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &l| {
+                            (lo.min(mean[l as usize][k]), hi.max(mean[l as usize][k]))
+                        });
                     hi - lo
                 };
                 ext(a).total_cmp(&ext(b))
             })
             .unwrap_or(0);
-        g.sort_unstable_by(|a, b| mean[*a as usize][axis].total_cmp(&mean[*b as usize][axis]).then(a.cmp(b)));
+        g.sort_unstable_by(|a, b| {
+            mean[*a as usize][axis].total_cmp(&mean[*b as usize][axis]).then(a.cmp(b))
+        });
         let right = g.split_off(g.len() / 2);
         stack.push(right);
         stack.push(g);
@@ -281,7 +286,13 @@ fn leaf_bound(lv: &Leaves, g: usize, q: &[[f32; 3]], u: &[f32], stop: f32) -> f3
 /// The key of lowest Eq. 8 cost for a query trajectory (`q`, `u` `[T]`), starting from
 /// `candidates` (any keys, e.g. kiddo's nearest at the query's best frame). Equals
 /// [`argmin_sum_brute`] (see the module doc for the argument).
-pub fn argmin_sum(kf: &KeyFrames, lv: &Leaves, q: &[[f32; 3]], u: &[f32], candidates: &[u32]) -> Option<(f32, u32)> {
+pub fn argmin_sum(
+    kf: &KeyFrames,
+    lv: &Leaves,
+    q: &[[f32; 3]],
+    u: &[f32],
+    candidates: &[u32],
+) -> Option<(f32, u32)> {
     let mut best: Option<(f32, u32)> = None;
     let consider = |l: u32, best: &mut Option<(f32, u32)>| {
         let stop = best.map_or(f32::INFINITY, |b| b.0);
@@ -339,10 +350,18 @@ pub fn knn_max_brute(kf: &KeyFrames, p: &[[f32; 3]], k: usize) -> Vec<(f32, u32)
 /// The `k` keys of lowest release max-distance cost for trajectory `p` `[T]`, starting
 /// from `candidates`; `tau[l]` is a frame at which key l is eligible (`u32::MAX` for keys
 /// never eligible). Equals [`knn_max_brute`].
-pub fn knn_max(kf: &KeyFrames, tau: &[u32], p: &[[f32; 3]], k: usize, candidates: &[u32]) -> Vec<(f32, u32)> {
+pub fn knn_max(
+    kf: &KeyFrames,
+    tau: &[u32],
+    p: &[[f32; 3]],
+    k: usize,
+    candidates: &[u32],
+) -> Vec<(f32, u32)> {
     let mut best: Vec<(f32, u32)> = Vec::with_capacity(k + 1);
     let mut seen = vec![false; kf.num_keys];
-    let kth = |best: &Vec<(f32, u32)>| if best.len() == k { best[k - 1] } else { (f32::INFINITY, u32::MAX) };
+    let kth = |best: &Vec<(f32, u32)>| {
+        if best.len() == k { best[k - 1] } else { (f32::INFINITY, u32::MAX) }
+    };
     let consider = |l: u32, best: &mut Vec<(f32, u32)>| {
         let c = max_cost2(kf, p, l as usize, kth(best));
         if c.is_finite() {
@@ -398,7 +417,8 @@ pub fn knn_minmax(kf: &KeyFrames, i: usize, k: usize) -> Vec<(f32, u32)> {
 pub fn knn_mean(kf: &KeyFrames, i: usize, k: usize) -> Vec<(f32, u32)> {
     let mut best: Vec<(f32, u32)> = Vec::with_capacity(k + 1);
     for l in (0..kf.num_keys).filter(|&l| l != i) {
-        let s: f32 = (0..kf.num_frames).map(|t| dist2(kf.q[kf.at(i, t)], kf.q[kf.at(l, t)]).sqrt()).sum();
+        let s: f32 =
+            (0..kf.num_frames).map(|t| dist2(kf.q[kf.at(i, t)], kf.q[kf.at(l, t)]).sqrt()).sum();
         push_top(&mut best, k, (s / kf.num_frames.max(1) as f32, l as u32));
     }
     best
@@ -415,7 +435,12 @@ mod tests {
         let mut rng = Rng::new(seed);
         let mats: Vec<glam::Mat3> = (0..nt)
             .map(|t| {
-                let r = glam::DMat3::from_euler(glam::EulerRot::XYZ, 0.1 * t as f64, rng.uniform() * 3.0, 0.3);
+                let r = glam::DMat3::from_euler(
+                    glam::EulerRot::XYZ,
+                    0.1 * t as f64,
+                    rng.uniform() * 3.0,
+                    0.3,
+                );
                 metric_transform([1.0, 1.0, 0.01], r)
             })
             .collect();
@@ -438,8 +463,12 @@ mod tests {
     fn query(seed: u64, nt: usize, mats: &[glam::Mat3]) -> (Vec<[f32; 3]>, Vec<f32>) {
         let mut rng = Rng::new(seed);
         let base = [rng.normal() as f32 * 2.0, rng.normal() as f32, rng.normal() as f32];
-        let q = (0..nt).map(|t| apply(&mats[t], [base[0] + 0.02 * t as f32, base[1], base[2]])).collect();
-        let u = (0..nt).map(|_| if rng.uniform() > 0.3 { (0.05 + rng.uniform()) as f32 } else { 1e8 }).collect();
+        let q = (0..nt)
+            .map(|t| apply(&mats[t], [base[0] + 0.02 * t as f32, base[1], base[2]]))
+            .collect();
+        let u = (0..nt)
+            .map(|_| if rng.uniform() > 0.3 { (0.05 + rng.uniform()) as f32 } else { 1e8 })
+            .collect();
         (q, u)
     }
 
@@ -450,7 +479,11 @@ mod tests {
             let trees = frame_trees(&kf);
             let lv = leaves(&kf, 8);
             let tau: Vec<u32> = (0..kf.num_keys)
-                .map(|l| (0..kf.num_frames).find(|&t| kf.eligible[kf.at(l, t)]).map_or(u32::MAX, |t| t as u32))
+                .map(|l| {
+                    (0..kf.num_frames)
+                        .find(|&t| kf.eligible[kf.at(l, t)])
+                        .map_or(u32::MAX, |t| t as u32)
+                })
                 .collect();
             for qs in 0..25 {
                 let (q, u) = query(seed * 100 + qs, kf.num_frames, &mats);
@@ -482,6 +515,9 @@ mod tests {
         let trees = frame_trees(&kf);
         let got = knn_at_frame(&kf, &trees[0], [0.0; 3], 1.0, 0, None, 2, true);
         assert_eq!(got, vec![(0.5, 0), (0.5, 1)]);
-        assert_eq!(argmin_sum(&kf, &leaves(&kf, 1), &[[0.0; 3]], &[1.0], &[2]), Some((1.0 / 2f32.sqrt(), 0)));
+        assert_eq!(
+            argmin_sum(&kf, &leaves(&kf, 1), &[[0.0; 3]], &[1.0], &[2]),
+            Some((1.0 / 2f32.sqrt(), 0))
+        );
     }
 }

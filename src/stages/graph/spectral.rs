@@ -171,9 +171,13 @@ fn rayleigh_ritz(v: &mut [Vec<f64>], apply: &impl Fn(&[f64], &mut [f64])) -> Vec
 /// and the eigenvector matrix (column c is the vector of value c).
 pub fn jacobi_eigen(mut a: Vec<Vec<f64>>) -> (Vec<f64>, Vec<Vec<f64>>) {
     let n = a.len();
-    let mut v: Vec<Vec<f64>> = (0..n).map(|i| (0..n).map(|j| if i == j { 1.0 } else { 0.0 }).collect()).collect();
+    let mut v: Vec<Vec<f64>> =
+        (0..n).map(|i| (0..n).map(|j| if i == j { 1.0 } else { 0.0 }).collect()).collect();
     for _ in 0..100 {
-        let off: f64 = (0..n).flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j))).map(|(i, j)| a[i][j] * a[i][j]).sum();
+        let off: f64 = (0..n)
+            .flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| a[i][j] * a[i][j])
+            .sum();
         if off < 1e-30 {
             break;
         }
@@ -212,7 +216,9 @@ pub fn jacobi_eigen(mut a: Vec<Vec<f64>>) -> (Vec<f64>, Vec<Vec<f64>>) {
 /// K = argmax_{1 ≤ K ≤ k_max} (λ_K − λ_{K+1}).
 pub fn eigengap(values: &[f64], k_max: usize) -> usize {
     (1..=k_max.min(values.len().saturating_sub(1)))
-        .max_by(|&a, &b| (values[a - 1] - values[a]).total_cmp(&(values[b - 1] - values[b])).then(b.cmp(&a)))
+        .max_by(|&a, &b| {
+            (values[a - 1] - values[a]).total_cmp(&(values[b - 1] - values[b])).then(b.cmp(&a))
+        })
         .unwrap_or(1)
 }
 
@@ -234,11 +240,12 @@ pub fn kmeans(points: &[Vec<f64>], k: usize, seed: u64, restarts: usize) -> Vec<
             let total: f64 = dist.iter().sum();
             let pick = if total > 0.0 {
                 let mut r = rng.uniform() * total;
-                dist.iter().position(|d| {
-                    r -= d;
-                    r < 0.0
-                })
-                .unwrap_or(n - 1)
+                dist.iter()
+                    .position(|d| {
+                        r -= d;
+                        r < 0.0
+                    })
+                    .unwrap_or(n - 1)
             } else {
                 (rng.next_u64() % n as u64) as usize
             };
@@ -251,7 +258,9 @@ pub fn kmeans(points: &[Vec<f64>], k: usize, seed: u64, restarts: usize) -> Vec<
         for _ in 0..300 {
             let mut changed = false;
             for (i, p) in points.iter().enumerate() {
-                let c = (0..k).min_by(|&a, &b| d2(p, &centres[a]).total_cmp(&d2(p, &centres[b])).then(a.cmp(&b)));
+                let c = (0..k).min_by(|&a, &b| {
+                    d2(p, &centres[a]).total_cmp(&d2(p, &centres[b])).then(a.cmp(&b))
+                });
                 let c = c.unwrap_or(0) as u32;
                 changed |= labels[i] != c;
                 labels[i] = c;
@@ -260,7 +269,12 @@ pub fn kmeans(points: &[Vec<f64>], k: usize, seed: u64, restarts: usize) -> Vec<
                 break;
             }
             for (c, centre) in centres.iter_mut().enumerate() {
-                let members: Vec<&Vec<f64>> = points.iter().zip(&labels).filter(|(_, l)| **l == c as u32).map(|(p, _)| p).collect();
+                let members: Vec<&Vec<f64>> = points
+                    .iter()
+                    .zip(&labels)
+                    .filter(|(_, l)| **l == c as u32)
+                    .map(|(p, _)| p)
+                    .collect();
                 if !members.is_empty() {
                     for (k, x) in centre.iter_mut().enumerate() {
                         *x = members.iter().map(|m| m[k]).sum::<f64>() / members.len() as f64;
@@ -268,7 +282,8 @@ pub fn kmeans(points: &[Vec<f64>], k: usize, seed: u64, restarts: usize) -> Vec<
                 }
             }
         }
-        let inertia: f64 = points.iter().zip(&labels).map(|(p, l)| d2(p, &centres[*l as usize])).sum();
+        let inertia: f64 =
+            points.iter().zip(&labels).map(|(p, l)| d2(p, &centres[*l as usize])).sum();
         if best.as_ref().is_none_or(|b| inertia < b.0) {
             best = Some((inertia, labels));
         }
