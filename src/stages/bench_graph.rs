@@ -46,10 +46,19 @@ pub struct BenchGraphParams {
     #[arg(long, default_value_t = 200)]
     #[serde(default = "default_checks")]
     pub check: usize,
+    /// Initial fraction of Gaussians hidden (u = φ); each frame flips a Gaussian's
+    /// visibility with probability 0.05.
+    #[arg(long, default_value_t = 0.3)]
+    #[serde(default = "default_hidden")]
+    pub hidden_fraction: f64,
     /// Seed of the synthetic model.
     #[arg(long, default_value_t = 0)]
     #[serde(default)]
     pub seed: u64,
+}
+
+fn default_hidden() -> f64 {
+    0.3
 }
 
 fn default_n() -> usize {
@@ -69,13 +78,28 @@ fn default_checks() -> usize {
 }
 
 /// A synthetic scene of `groups` rigid blobs: the tracks, the training cameras' R_cw `[T]`
-/// and the group of each Gaussian `[N]`.
+/// and the group of each Gaussian `[N]`; 30% of the Gaussians start hidden (see
+/// [`synthetic_tracks_hidden`]).
 pub fn synthetic_tracks(
     n: usize,
     nt: usize,
     groups: usize,
     seed: u64,
 ) -> (Tracks, Vec<DMat3>, Vec<u32>) {
+    synthetic_tracks_hidden(n, nt, groups, 0.3, seed)
+}
+
+/// [`synthetic_tracks`] where a fraction `hidden` of the Gaussians starts unreliable
+/// (u = φ) and each frame flips a Gaussian's visibility with probability 0.05 (never when
+/// `hidden` is 0).
+pub fn synthetic_tracks_hidden(
+    n: usize,
+    nt: usize,
+    groups: usize,
+    hidden: f64,
+    seed: u64,
+) -> (Tracks, Vec<DMat3>, Vec<u32>) {
+    let flip = if hidden > 0.0 { 0.05 } else { 0.0 };
     let mut rng = Rng::new(seed);
     let groups = groups.max(1);
     let motion: Vec<(DVec3, DVec3, DVec3, f64)> = (0..groups)
@@ -98,17 +122,17 @@ pub fn synthetic_tracks(
         let (centre, vel, axis, omega) = motion[g];
         let offset = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.6;
         let base_u = (0.05 * (0.7 * rng.normal()).exp()) as f32;
-        let mut hidden = rng.uniform() < 0.3;
+        let mut is_hidden = rng.uniform() < hidden;
         for t in 0..nt {
             let rot = DQuat::from_axis_angle(axis, omega * t as f64);
             let p = centre + vel * t as f64 + rot * offset;
             tracks.positions.push(p.as_vec3().to_array());
-            if rng.uniform() < 0.05 {
-                hidden = !hidden;
+            if rng.uniform() < flip {
+                is_hidden = !is_hidden;
             }
             let u = base_u * (0.3 * rng.normal()).exp() as f32;
-            tracks.u.push(if hidden { 1e8 } else { u });
-            tracks.reliable.push(!hidden);
+            tracks.u.push(if is_hidden { 1e8 } else { u });
+            tracks.reliable.push(!is_hidden);
         }
     }
     let rotations = (0..nt)
@@ -139,12 +163,14 @@ pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
         ctx.warn("bench graph: this is a debug build; timings are meaningful only with --release");
     }
     let t0 = Instant::now();
-    let (tracks, rotations, _) = synthetic_tracks(p.gaussians, p.frames, p.groups, p.seed);
+    let (tracks, rotations, _) =
+        synthetic_tracks_hidden(p.gaussians, p.frames, p.groups, p.hidden_fraction, p.seed);
     ctx.info(format!(
-        "synthetic model: N = {}, T = {}, {} groups, generated in {:.2} s",
+        "synthetic model: N = {}, T = {}, {} groups, {}% hidden at start, generated in {:.2} s",
         p.gaussians,
         p.frames,
         p.groups,
+        p.hidden_fraction * 100.0,
         t0.elapsed().as_secs_f64()
     ));
     println!(
