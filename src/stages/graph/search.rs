@@ -200,10 +200,17 @@ pub fn argmin_sum_brute(kf: &KeyFrames, q: &[[f32; 3]], u: &[f32]) -> Option<(f3
 /// Keys grouped spatially, with per-frame bounding boxes (in q) and largest u.
 #[derive(Debug, Clone, Default)]
 pub struct Leaves {
+    /// Member keys of each leaf.
     keys: Vec<Vec<u32>>,
+    /// Per leaf `[T]`: bounding box of the members eligible at t (empty: lo > hi).
     lo: Vec<Vec<[f32; 3]>>,
     hi: Vec<Vec<[f32; 3]>>,
+    /// Per leaf `[T]`: largest u of the members eligible at t.
     u_max: Vec<Vec<f32>>,
+    /// Per leaf `[members, T]`: 1 where the member is eligible at t, else 0.
+    mask: Vec<Vec<f32>>,
+    /// Per leaf `[T]`: 1 where every member is eligible at t, else 0.
+    all: Vec<Vec<f32>>,
 }
 
 /// Group the keys into leaves of at most `size` by recursive median splits of their
@@ -251,9 +258,14 @@ pub fn leaves(kf: &KeyFrames, size: usize) -> Leaves {
         let mut lo = vec![[f32::INFINITY; 3]; nt];
         let mut hi = vec![[f32::NEG_INFINITY; 3]; nt];
         let mut um = vec![0.0f32; nt];
+        let mut mask = Vec::with_capacity(g.len() * nt);
         for &l in &g {
             for t in 0..nt {
                 let i = kf.at(l as usize, t);
+                mask.push(if kf.eligible[i] { 1.0 } else { 0.0 });
+                if !kf.eligible[i] {
+                    continue;
+                }
                 for k in 0..3 {
                     lo[t][k] = lo[t][k].min(kf.q[i][k]);
                     hi[t][k] = hi[t][k].max(kf.q[i][k]);
@@ -261,26 +273,62 @@ pub fn leaves(kf: &KeyFrames, size: usize) -> Leaves {
                 um[t] = um[t].max(kf.u[i]);
             }
         }
+        let all = (0..nt)
+            .map(|t| if g.iter().all(|&l| kf.eligible[kf.at(l as usize, t)]) { 1.0 } else { 0.0 })
+            .collect();
         out.keys.push(g);
         out.lo.push(lo);
         out.hi.push(hi);
         out.u_max.push(um);
+        out.mask.push(mask);
+        out.all.push(all);
     }
     out
 }
 
-/// Lower bound of [`sum_cost`] over the members of leaf `g`; stops early above `stop`.
-fn leaf_bound(lv: &Leaves, g: usize, q: &[[f32; 3]], u: &[f32], stop: f32) -> f32 {
-    let (lo, hi, um) = (&lv.lo[g], &lv.hi[g], &lv.u_max[g]);
-    let mut s = 0.0f32;
+/// Per-frame lower bounds `[T]` of the Eq. 8 terms of the members of leaf `g` that are
+/// eligible at t: dist(q_t, box_t) / √(u_t + u_max,t) (0 where no member is eligible), and
+/// the leaf's bound (their sum over the frames where every member is eligible); `None` as
+/// soon as that bound exceeds `stop` (then no member can beat it).
+fn leaf_terms(
+    lv: &Leaves,
+    g: usize,
+    q: &[[f32; 3]],
+    u: &[f32],
+    stop: f32,
+) -> Option<(f32, Vec<f32>)> {
+    let (lo, hi, um, all) = (&lv.lo[g], &lv.hi[g], &lv.u_max[g], &lv.all[g]);
+    let mut terms = Vec::with_capacity(q.len());
+    let mut leaf_lb = 0.0f32;
     for t in 0..q.len() {
-        let c = [0, 1, 2].map(|k| q[t][k].clamp(lo[t][k], hi[t][k]));
-        s += dist2(q[t], c).sqrt() / (u[t] + um[t]).sqrt();
-        if s > stop {
-            break;
+        let c = if lo[t][0] > hi[t][0] {
+            0.0
+        } else {
+            let c = [0, 1, 2].map(|k| q[t][k].clamp(lo[t][k], hi[t][k]));
+            dist2(q[t], c).sqrt() / (u[t] + um[t]).sqrt()
+        };
+        terms.push(c);
+        leaf_lb += all[t] * c;
+        if leaf_lb * (1.0 - 1e-3) > stop {
+            return None;
         }
     }
-    s
+    Some((leaf_lb, terms))
+}
+
+/// Σ_t mask_t · c_t with eight accumulators (vectorisable; order differs from
+/// [`sum_cost`], hence the relative margin where it is compared).
+fn masked_sum(mask: &[f32], c: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let (m8, c8) = (mask.chunks_exact(8), c.chunks_exact(8));
+    let (mr, cr) = (m8.remainder(), c8.remainder());
+    for (m, c) in m8.zip(c8) {
+        for k in 0..8 {
+            acc[k] += m[k] * c[k];
+        }
+    }
+    let tail: f32 = mr.iter().zip(cr).map(|(m, c)| m * c).sum();
+    acc.iter().sum::<f32>() + tail
 }
 
 /// The key of lowest Eq. 8 cost for a query trajectory (`q`, `u` `[T]`), starting from
@@ -304,15 +352,26 @@ pub fn argmin_sum(
     for &l in candidates {
         consider(l, &mut best);
     }
-    let mut bounds: Vec<(f32, usize)> = (0..lv.keys.len())
-        .map(|g| (leaf_bound(lv, g, q, u, best.map_or(f32::INFINITY, |b| b.0)), g))
+    let nt = q.len();
+    // A leaf's bound: the frames where all its members are eligible. Leaves are visited by
+    // increasing bound; once one exceeds the best cost, so do all that follow.
+    let stop = best.map_or(f32::INFINITY, |b| b.0);
+    let mut order: Vec<(f32, usize, Vec<f32>)> = (0..lv.keys.len())
+        .filter_map(|g| leaf_terms(lv, g, q, u, stop).map(|(lb, terms)| (lb, g, terms)))
         .collect();
-    bounds.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    for (bound, g) in bounds {
-        if best.is_some_and(|b| bound > b.0) {
+    order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    for (leaf_lb, g, terms) in order {
+        if best.is_some_and(|b| leaf_lb * (1.0 - 1e-3) > b.0) {
             break;
         }
-        for &l in &lv.keys[g] {
+        for (m, &l) in lv.keys[g].iter().enumerate() {
+            // Lower bound of key l: its eligible frames' leaf bounds (non-eligible frames
+            // contribute ≥ 0). Summed in another order than `sum_cost`, so compared with a
+            // relative margin far above f32 rounding of T ≤ 10^4 non-negative terms.
+            let lb = masked_sum(&lv.mask[g][m * nt..(m + 1) * nt], &terms);
+            if best.is_some_and(|b| lb * (1.0 - 1e-3) > b.0) {
+                continue;
+            }
             consider(l, &mut best);
         }
     }
