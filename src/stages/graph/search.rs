@@ -9,13 +9,17 @@
 //!   (u_max the largest u among eligible keys at t; unweighted metrics divide by 1). When the
 //!   k-th exact cost is below that bound (with a 1e-5 relative margin for kiddo's own
 //!   rounding) no unseen key can enter the top k; otherwise m doubles, up to all keys.
-//! - [`argmin_sum`] (Eq. 8): keys are grouped in leaves; per frame a leaf stores the bounding
-//!   box of its members' q and their largest u. For every member l and frame t,
-//!   dist(q_i, box_t) ≤ ‖q_i − q_l‖ and √(u_i + u_max) ≥ √(u_i + u_l), so the leaf's summed
-//!   bound is ≤ every member's cost. IEEE rounding is monotone, so this holds for the
-//!   computed floats too, term by term and through the (same-order) sums. Leaves whose bound
-//!   exceeds the best cost found so far are skipped, and partial sums of non-negative terms
-//!   stop as soon as they exceed it.
+//! - [`argmin_sum`] (Eq. 8): keys are grouped in leaves; per frame t a leaf stores the
+//!   bounding box of the q of its members eligible (reliable) at t and their largest u.
+//!   For such a member l, dist(q_i, box_t) ≤ ‖q_i − q_l‖ and √(u_i + u_max) ≥ √(u_i + u_l),
+//!   so c_t = dist / √(u_i + u_max) bounds its frame-t term (IEEE rounding is monotone, so
+//!   this holds for the computed floats); its other terms are ≥ 0. Hence a key's cost is at
+//!   least Σ_t [l eligible at t]·c_t, and every member's cost at least the leaf bound
+//!   Σ_t [all members eligible at t]·c_t. Leaves are visited by increasing bound and the
+//!   search stops at the first whose bound exceeds the best cost so far; inside a leaf, keys
+//!   whose own bound exceeds it are skipped. Bounds are summed in another order than the
+//!   exact cost, so they are compared with a 1e-3 relative margin (f32 rounding of T ≤ 10⁴
+//!   non-negative terms is below 10⁻³); exact partial sums stop once above the best.
 //! - [`knn_max`] (release non-key assignment): the cost is a maximum over the key's
 //!   confident frames, so one of its terms (frame τ_l, a confident frame of key l) is a
 //!   lower bound computed by the same float operations; keys whose bound exceeds the current
