@@ -6,6 +6,7 @@ mod util;
 mod bad_inputs;
 mod dycheck;
 mod evaluate;
+mod graph;
 mod inspect;
 mod interop;
 mod pipeline;
