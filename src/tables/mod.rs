@@ -127,5 +127,9 @@ pub fn registry() -> Vec<TableKind> {
         entry::<tracks_2d::Tracks2dTable>(),
         entry::<tracks_3d::Tracks3dTable>(),
         entry::<metrics::MetricsTable>(),
+        entry::<uncertainty::UncertaintyTable>(),
+        entry::<key_nodes::KeyNodesTable>(),
+        entry::<edges::EdgesTable>(),
+        entry::<segments::SegmentsTable>(),
     ]
 }
