@@ -7,6 +7,7 @@ mod bad_inputs;
 mod dycheck;
 mod evaluate;
 mod graph;
+mod graph_fox;
 mod inspect;
 mod interop;
 mod pipeline;
