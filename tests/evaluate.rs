@@ -403,6 +403,7 @@ fn tracking_scores_oracle_and_offset_model() {
     Model::save(&moved, &m.gaussians, frames, &Provenance::default()).unwrap();
     let bad = score(&moved, &d.join("E2"));
     let (bad_epe, bad_pck10) = (bad["epe"].as_f64().unwrap(), bad["pck_10"].as_f64().unwrap());
+    eprintln!("tracking scores: oracle {good}\noffset {bad}");
     assert!(bad_epe > epe + 0.2 * diag && bad_pck10 < 0.2, "offset: {bad} oracle: {good}");
 
     // Without --model the summary has no tracking entry.
