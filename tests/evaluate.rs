@@ -1,7 +1,8 @@
 //! End-to-end tests of `usplat4d evaluate` on a hand-made scene directory: ground-truth
 //! PNGs and a cameras table written with `Scene::save`, and "renders" made by perturbing
-//! the ground truth. Not validated here: LPIPS values (unit-tested against golden values
-//! in `metrics::lpips`), and renders made by the real renderer.
+//! the ground truth; and of `evaluate --model` (3D tracking) on a tiny `synth` scene with
+//! its oracle model and a model whose trajectories are offset. Not validated here: LPIPS
+//! values (unit-tested against golden values in `metrics::lpips`).
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -316,4 +317,107 @@ fn masked_protocol_for_cameras_without_offsets() {
     assert!(o.status.success());
     let rows = usplat4d::tables::metrics::read(&out.join("metrics.parquet")).unwrap();
     assert!(rows.iter().all(|r| !r.masked && r.psnr < 20.0), "{rows:?}");
+}
+
+/// `evaluate --model`: the synth oracle tracks the ground truth closely; the same model
+/// with every position offset by 0.3 of the bbox diagonal scores clearly worse.
+#[test]
+fn tracking_scores_oracle_and_offset_model() {
+    use usplat4d::model::{FrameState, Model};
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let fox = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/data/Fox.glb");
+    let (scene, oracle) = (d.join("S"), d.join("S/oracle"));
+    let ok = |o: Output| assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ok(run(&[
+        "synth",
+        "--gltf",
+        s(&fox),
+        "--out",
+        s(&scene),
+        "--frames",
+        "6",
+        "--cameras",
+        "2",
+        "--width",
+        "128",
+        "--height",
+        "128",
+        "--gaussians",
+        "800",
+        "--tracks",
+        "64",
+    ]));
+    let renders = d.join("R");
+    ok(run(&[
+        "render",
+        "--model",
+        s(&oracle),
+        "--scene",
+        s(&scene),
+        "--split",
+        "eval",
+        "--out",
+        s(&renders),
+    ]));
+    let score = |model: &Path, out: &Path| -> serde_json::Value {
+        let o = run(&[
+            "evaluate",
+            "--renders",
+            s(&renders),
+            "--scene",
+            s(&scene),
+            "--model",
+            s(model),
+            "--out",
+            s(out),
+            "--lpips",
+            "off",
+        ]);
+        let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        assert!(stdout.contains("| EPE | PCK@5% | PCK@10% |"), "{stdout}");
+        let md = std::fs::read_to_string(out.join("summary.md")).unwrap();
+        assert_eq!(md, stdout);
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap())
+                .unwrap();
+        json["tracking"].clone()
+    };
+    let good = score(&oracle, &d.join("E"));
+    let diag = good["bbox_diagonal"].as_f64().unwrap();
+    assert_eq!(good["keyframes"], serde_json::json!([0, 1, 2, 3, 4, 5]));
+    assert_eq!(good["pairs"], 36);
+    let (epe, pck10) = (good["epe"].as_f64().unwrap(), good["pck_10"].as_f64().unwrap());
+    assert!(epe < 0.05 * diag && pck10 > 0.9, "oracle: {good}");
+
+    let m = Model::load(&oracle).unwrap();
+    let offset = (0.3 * diag / 3f64.sqrt()) as f32;
+    let frames = (0..m.num_frames()).map(|t| {
+        m.frame(t).map(|f| FrameState {
+            position: f.position.iter().map(|p| p.map(|v| v + offset)).collect(),
+            ..f
+        })
+    });
+    let moved = d.join("moved");
+    Model::save(&moved, &m.gaussians, frames, &Provenance::default()).unwrap();
+    let bad = score(&moved, &d.join("E2"));
+    let (bad_epe, bad_pck10) = (bad["epe"].as_f64().unwrap(), bad["pck_10"].as_f64().unwrap());
+    eprintln!("tracking scores: oracle {good}\noffset {bad}");
+    assert!(bad_epe > epe + 0.2 * diag && bad_pck10 < 0.2, "offset: {bad} oracle: {good}");
+
+    // Without --model the summary has no tracking entry.
+    ok(run(&[
+        "evaluate",
+        "--renders",
+        s(&renders),
+        "--scene",
+        s(&scene),
+        "--out",
+        s(&d.join("E3")),
+        "--lpips",
+        "off",
+    ]));
+    let plain = std::fs::read_to_string(d.join("E3/summary.json")).unwrap();
+    assert!(!plain.contains("tracking"), "{plain}");
 }

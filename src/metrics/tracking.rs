@@ -200,7 +200,7 @@ pub fn predict_positions(
 }
 
 /// Ground-truth 3D tracks: `positions[t]` `[M, 3]` world positions and `visible[t]` `[M]`
-/// for every training frame t.
+/// (visible in the training camera) for every training frame t.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GtTracks3d {
     /// `[T][M, 3]`.
@@ -256,7 +256,9 @@ fn keyframe_states(
 /// predictions over all ordered pairs of `frames` (the source frame included as its own
 /// target, as SoM's `(10·10, J, 3)` layout has it). Queries are the ground-truth points
 /// projected into the source training camera; a point counts in a pair when it is visible
-/// in both frames and projects inside the source image.
+/// in the source frame (`gt.visible[s]`, visibility in the training camera) and projects
+/// inside the source image. The target needs no visibility: the 3D target position is
+/// known whether or not the training camera sees it.
 pub fn track_3d(
     model: &Model,
     scene: &Scene,
@@ -296,9 +298,8 @@ pub fn track_3d(
         )
         .map_err(|source| Error::Render { frame: s, source })?;
         for (&t, pred) in frames.iter().zip(&preds) {
-            let (gt_t, vt) = gt_frame(gt, t)?;
-            let valid: Vec<bool> =
-                (0..gs.len()).map(|m| vs[m] && vt[m] && proj[m].is_some()).collect();
+            let (gt_t, _) = gt_frame(gt, t)?;
+            let valid: Vec<bool> = (0..gs.len()).map(|m| vs[m] && proj[m].is_some()).collect();
             pairs.push(score_pair(pred, gt_t, &valid, &thresholds));
         }
     }

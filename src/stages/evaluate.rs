@@ -11,6 +11,10 @@
 //! (mPSNR, mSSIM, mLPIPS over the covisibility mask). Every summary value is the mean of
 //! the per-image values.
 //!
+//! With `--model MODEL_DIR` and a scene with ground-truth tracks, the model's 3D tracking
+//! scores (EPE, PCK at 5% and 10% of the bbox diagonal; [`super::evaluate_tracks`]) are
+//! added to the summary.
+//!
 //! Outputs in `OUT/`: `metrics.parquet` (one row per image, scene camera order),
 //! `summary.json` and `summary.md` (also printed).
 
@@ -19,6 +23,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context as _;
 use rayon::prelude::*;
 
+use super::evaluate_tracks::TrackingSummary;
 use crate::context::Context;
 use crate::image_io::{self, Image};
 use crate::metrics::lpips::{Lpips, WeightsError};
@@ -105,9 +110,14 @@ pub struct EvaluateParams {
     #[arg(long, value_enum, default_value_t = MaskMode::Auto)]
     #[serde(default)]
     pub masks: MaskMode,
+    /// Model directory whose tracks are scored against the scene's ground-truth tracks
+    /// (3D EPE and PCK; skipped with a warning when the scene has none).
+    #[arg(long, value_name = "MODEL_DIR")]
+    #[serde(default)]
+    pub model: Option<PathBuf>,
     /// Instead of evaluating, print two evaluations side by side (output directories of
     /// `evaluate` or their metrics.parquet files).
-    #[arg(long, num_args = 2, value_names = ["A", "B"], conflicts_with_all = ["renders", "scene", "out", "fail_below"])]
+    #[arg(long, num_args = 2, value_names = ["A", "B"], conflicts_with_all = ["renders", "scene", "out", "fail_below", "model"])]
     #[serde(default)]
     pub compare: Option<Vec<PathBuf>>,
 }
@@ -144,7 +154,10 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
         &rows,
         &Provenance::new("evaluate", p),
     )?;
-    let summary = summarise(&rows);
+    let mut summary = summarise(&rows);
+    if let Some(model) = &p.model {
+        summary.tracking = super::evaluate_tracks::evaluate_tracks(&scene, model, ctx)?;
+    }
     let json = serde_json::to_string_pretty(&summary).context("serialising the summary")?;
     image_io::write_atomic(&out.join("summary.json"), format!("{json}\n").as_bytes())?;
     let md = summary.markdown();
@@ -164,7 +177,7 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
 }
 
 /// The last component of `dir` as a label.
-fn dir_label(dir: &Path) -> String {
+pub(crate) fn dir_label(dir: &Path) -> String {
     dir.canonicalize()
         .ok()
         .and_then(|d| d.file_name().map(|n| n.to_string_lossy().into_owned()))
@@ -322,6 +335,9 @@ pub struct Summary {
     pub masked: bool,
     /// Non-empty view-range groups (synthetic scenes) followed by `all`.
     pub groups: Vec<Group>,
+    /// 3D tracking scores (`evaluate --model`), when computed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tracking: Option<TrackingSummary>,
 }
 
 fn group(label: String, rows: &[&MetricRow]) -> Group {
@@ -357,6 +373,7 @@ pub fn summarise(rows: &[MetricRow]) -> Summary {
         method: first.map(|r| r.method.clone()).unwrap_or_default(),
         masked: rows.iter().any(|r| r.masked),
         groups,
+        tracking: None,
     }
 }
 
@@ -385,6 +402,9 @@ impl Summary {
                 g.ssim,
                 fmt_opt(g.lpips, 3)
             ));
+        }
+        if let Some(t) = &self.tracking {
+            md.push_str(&t.markdown());
         }
         md
     }

@@ -3,6 +3,7 @@
 pub mod bench_graph;
 pub mod edges;
 pub mod evaluate;
+pub mod evaluate_tracks;
 pub mod graph;
 pub mod keynodes;
 pub mod render;
