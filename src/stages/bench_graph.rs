@@ -14,7 +14,7 @@ use glam::{DMat3, DQuat, DVec3};
 
 use super::edges::{self, EdgeSettings, NonkeyAssignMode};
 use super::graph::search::{self, KeyFrames};
-use super::graph::{Amount, Profile, Rng, Tracks, apply};
+use super::graph::{Amount, MetricForm, Profile, Rng, Tracks, apply};
 use super::keynodes::{self, KeynodeSettings};
 use crate::context::Context;
 
@@ -42,6 +42,10 @@ pub struct BenchGraphParams {
     #[arg(long)]
     #[serde(default)]
     pub voxel_size: Option<Amount>,
+    /// Form of the Eqs. 7-8 norm override (default: each profile's own).
+    #[arg(long, value_enum)]
+    #[serde(default)]
+    pub metric_form: Option<MetricForm>,
     /// Non-keys whose assignment is checked against brute force.
     #[arg(long, default_value_t = 200)]
     #[serde(default = "default_checks")]
@@ -182,7 +186,10 @@ pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
         if let Some(v) = p.voxel_size {
             ks.voxel_size = v;
         }
-        let es = EdgeSettings::defaults(profile);
+        let mut es = EdgeSettings::defaults(profile);
+        if let Some(f) = p.metric_form {
+            es.metric_form = f;
+        }
         let t1 = Instant::now();
         let keys = keynodes::select(&tracks, &ks);
         let t_keys = t1.elapsed().as_secs_f64();
