@@ -14,7 +14,7 @@ use glam::{DMat3, DQuat, DVec3};
 
 use super::edges::{self, EdgeSettings, NonkeyAssignMode};
 use super::graph::search::{self, KeyFrames};
-use super::graph::{Amount, Profile, Rng, Tracks, apply, metric_transform};
+use super::graph::{Amount, MetricForm, Profile, Rng, Tracks, apply};
 use super::keynodes::{self, KeynodeSettings};
 use crate::context::Context;
 
@@ -42,6 +42,10 @@ pub struct BenchGraphParams {
     #[arg(long)]
     #[serde(default)]
     pub voxel_size: Option<Amount>,
+    /// Form of the Eqs. 7-8 norm override (default: each profile's own).
+    #[arg(long, value_enum)]
+    #[serde(default)]
+    pub metric_form: Option<MetricForm>,
     /// Non-keys whose assignment is checked against brute force.
     #[arg(long, default_value_t = 200)]
     #[serde(default = "default_checks")]
@@ -182,7 +186,10 @@ pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
         if let Some(v) = p.voxel_size {
             ks.voxel_size = v;
         }
-        let es = EdgeSettings::defaults(profile);
+        let mut es = EdgeSettings::defaults(profile);
+        if let Some(f) = p.metric_form {
+            es.metric_form = f;
+        }
         let t1 = Instant::now();
         let keys = keynodes::select(&tracks, &ks);
         let t_keys = t1.elapsed().as_secs_f64();
@@ -219,9 +226,9 @@ fn check_sample(
     let nt = tracks.num_frames;
     let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
     let mats: Vec<glam::Mat3> = if s.needs_rotations() {
-        rotations.iter().map(|r| metric_transform(s.r_xyz, *r)).collect()
+        rotations.iter().map(|r| s.metric_form.transform(s.r_xyz, *r)).collect()
     } else {
-        vec![metric_transform(s.r_xyz, DMat3::IDENTITY); nt]
+        vec![s.metric_form.transform(s.r_xyz, DMat3::IDENTITY); nt]
     };
     let u_mask = 1.0 / s.contrib_threshold;
     let paper = s.nonkey_assign_mode == NonkeyAssignMode::ArgminSumMahalanobis;
@@ -245,7 +252,7 @@ fn check_sample(
         let want: Vec<u32> = if paper {
             let q: Vec<[f32; 3]> = (0..nt).map(|t| apply(&mats[t], tracks.pos(i, t))).collect();
             let u: Vec<f32> = (0..nt).map(|t| tracks.u(i, t)).collect();
-            search::argmin_sum_brute(&kf, &q, &u)
+            search::argmin_sum_brute(&kf, &q, &u, s.metric_form)
                 .map(|b| tracks.ids[key_rows[b.1 as usize]])
                 .into_iter()
                 .collect()

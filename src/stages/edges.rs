@@ -1,16 +1,22 @@
 //! Edge construction (paper Sec. 4.2, "Edge construction"; official-release.md Sec. 4).
 //!
 //! *Key → key.* Paper (UA-kNN, Eq. 7): for key i at its most reliable frame
-//! t̂ = argmin_t u_{i,t}, the k keys j reliable at t̂ of lowest Mahalanobis distance
-//! ‖p_i − p_j‖ in the metric (U_{t̂,i} + U_{t̂,j})⁻¹, U from Eq. 6; since both Gaussians share
-//! frame t̂'s camera, that is ‖A_t̂ δ‖² / (u_i + u_j) with A_t = diag(r)^{-1/2} R_cw
-//! ([`super::graph::metric_transform`]). Release: 120-NN by the largest distance over the
+//! t̂ = argmin_t u_{i,t}, the k keys j reliable at t̂ ("only among other low-uncertainty
+//! key nodes") of lowest ‖p_i − p_j‖_{(U_{t̂,i} + U_{t̂,j})}, U from Eq. 6. The norm's form is
+//! `--metric-form` ([`MetricForm`], whose doc gives the reasoning): `weight` (paper
+//! profile), the paper's own notation ‖x‖_M = √(xᵀMx), i.e. (u_i + u_j)·‖B_t̂ δ‖² with
+//! B_t = diag(r)^{1/2} R_cw since both Gaussians share frame t̂'s camera; or `inverse`,
+//! δᵀ(U_i + U_j)⁻¹δ = ‖A_t̂ δ‖² / (u_i + u_j) with A_t = diag(r)^{-1/2} R_cw. Release: 120-NN by the largest distance over the
 //! frames where both keys are confident (`minmax-distance`), or at t̂ among confident keys
 //! (`max-contrib`), or by the time-averaged distance (`max-native`). Ablation (b): plain
 //! Euclidean kNN at t̂ among all keys (`euclidean`).
 //!
 //! *Non-key → key.* Paper (Eq. 8): i is attached to
-//! j = argmin_l Σ_t ‖p_{i,t} − p_{l,t}‖_{(U_{t,i} + U_{t,l})} and connected to E_j ∪ {j}.
+//! j = argmin_l Σ_t ‖p_{i,t} − p_{l,t}‖_{(U_{t,i} + U_{t,l})} (same form), summed over all
+//! T frames as written: with `weight`, a frame where the key is unreliable (u = φ) adds a
+//! large term, which is the paper's intent (attach to "the most reliable key node that
+//! stays close to it over time"), so no restriction to reliable frames is needed; with
+//! `inverse` such a frame adds ≈ 0. Then i is connected to E_j ∪ {j}.
 //! Release: the 5 keys of lowest max_{t: key confident} ‖p_u(t) − p_k(t)‖.
 //!
 //! *Weights*, normalised over the edges leaving each Gaussian: key edges `uniform` (the
@@ -30,7 +36,7 @@ use glam::{DMat3, Mat3};
 use rayon::prelude::*;
 
 use super::graph::search::{self, KeyFrames};
-use super::graph::{Profile, Tracks, apply, metric_transform};
+use super::graph::{MetricForm, Profile, Tracks, apply};
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::KeyNodes;
@@ -130,6 +136,12 @@ pub struct EdgeParams {
     #[arg(long, help_heading = "Method")]
     #[serde(default)]
     pub nonkey_weight_sharpness: Option<f64>,
+    /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
+    /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) [paper weight, release inverse
+    /// (unused by its edges)].
+    #[arg(long, value_enum, help_heading = "Method")]
+    #[serde(default)]
+    pub metric_form: Option<MetricForm>,
     /// Anisotropy r_x,r_y,r_z of Eq. 6 [paper 1,1,0.01; release 1,1,0.1 (unused by its
     /// edges)].
     #[arg(long, value_delimiter = ',', help_heading = "Method")]
@@ -161,6 +173,8 @@ pub struct EdgeSettings {
     pub nonkey_k: usize,
     /// λ of the non-key weights.
     pub nonkey_weight_sharpness: f64,
+    /// Form of the norm of Eqs. 7-8.
+    pub metric_form: MetricForm,
     /// Anisotropy of Eq. 6.
     pub r_xyz: [f64; 3],
     /// Release confidence mask threshold on the normalised contribution.
@@ -188,6 +202,7 @@ impl EdgeSettings {
             },
             nonkey_k: 5,
             nonkey_weight_sharpness: 100.0,
+            metric_form: if paper { MetricForm::Weight } else { MetricForm::Inverse },
             r_xyz: if paper { [1.0, 1.0, 0.01] } else { [1.0, 1.0, 0.1] },
             contrib_threshold: 2.0,
         }
@@ -224,6 +239,7 @@ impl EdgeParams {
             nonkey_weight_sharpness: self
                 .nonkey_weight_sharpness
                 .unwrap_or(d.nonkey_weight_sharpness),
+            metric_form: self.metric_form.unwrap_or(d.metric_form),
             r_xyz,
             contrib_threshold: self.contrib_threshold.unwrap_or(d.contrib_threshold),
         };
@@ -305,9 +321,9 @@ pub fn build(
         if rotations.len() != nt {
             return Err(EdgeError::Rotations { found: rotations.len(), expected: nt });
         }
-        rotations.iter().map(|r| metric_transform(s.r_xyz, *r)).collect()
+        rotations.iter().map(|r| s.metric_form.transform(s.r_xyz, *r)).collect()
     } else {
-        let iso = metric_transform(s.r_xyz, DMat3::IDENTITY);
+        let iso = s.metric_form.transform(s.r_xyz, DMat3::IDENTITY);
         vec![iso; nt]
     };
     let key_rows: Vec<usize> = (0..n).filter(|&i| keys.is_key[i]).collect();
@@ -325,13 +341,13 @@ pub fn build(
     let k = s.key_knn_k;
     let neighbours: Vec<Vec<(f32, u32)>> = match s.key_edge_mode {
         KeyEdgeMode::UaKnn | KeyEdgeMode::Euclidean | KeyEdgeMode::MaxContrib => {
-            let (kf, weighted) = match s.key_edge_mode {
-                KeyEdgeMode::UaKnn => (metric.clone(), true),
+            let (kf, form) = match s.key_edge_mode {
+                KeyEdgeMode::UaKnn => (metric.clone(), Some(s.metric_form)),
                 KeyEdgeMode::Euclidean => (
                     KeyFrames { eligible: vec![true; world.eligible.len()], ..world.clone() },
-                    false,
+                    None,
                 ),
-                _ => (world.clone(), false),
+                _ => (world.clone(), None),
             };
             let trees = search::frame_trees(&kf);
             (0..key_rows.len())
@@ -340,7 +356,7 @@ pub fn build(
                     let t = keys.t_hat[key_rows[a]] as usize;
                     let q = kf.q[a * nt + t];
                     let u = kf.u[a * nt + t];
-                    search::knn_at_frame(&kf, &trees[t], q, u, t, Some(a as u32), k, weighted)
+                    search::knn_at_frame(&kf, &trees[t], q, u, t, Some(a as u32), k, form)
                 })
                 .collect()
         }
@@ -370,7 +386,7 @@ pub fn build(
     let nonkey_edges: Vec<Vec<(u32, f64)>> = match s.nonkey_assign_mode {
         NonkeyAssignMode::ArgminSumMahalanobis => {
             let trees = search::frame_trees(&metric);
-            let leaves = search::leaves(&metric, 32);
+            let leaves = search::leaves(&metric, 32, s.metric_form);
             nonkey_rows
                 .par_iter()
                 .map(|&i| {
@@ -598,29 +614,42 @@ mod tests {
     #[test]
     fn paper_nonkeys_attach_to_the_brute_force_argmin_and_its_neighbours() {
         let (tracks, rotations, keys) = setup(Profile::Paper);
-        let s = EdgeSettings::defaults(Profile::Paper);
-        let e = build(&tracks, &keys, &rotations, &s).unwrap();
-        let nt = tracks.num_frames;
-        let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
-        let mats: Vec<Mat3> = rotations.iter().map(|r| metric_transform(s.r_xyz, *r)).collect();
-        let kf =
-            key_frames(&tracks, &key_rows, |t, p| apply(&mats[t], p), |tr, i, t| tr.reliable(i, t));
-        let nonkey = (0..tracks.len()).find(|&i| !keys.is_key[i]).unwrap();
-        let q: Vec<[f32; 3]> = (0..nt).map(|t| apply(&mats[t], tracks.pos(nonkey, t))).collect();
-        let u: Vec<f32> = (0..nt).map(|t| tracks.u(nonkey, t)).collect();
-        let j = tracks.ids[key_rows[argmin_sum_brute(&kf, &q, &u).unwrap().1 as usize]];
-        let out: Vec<u32> =
-            (0..e.len()).filter(|&k| e.src[k] == tracks.ids[nonkey]).map(|k| e.dst[k]).collect();
-        let nbrs: Vec<u32> = (0..e.len())
-            .filter(|&k| e.src[k] == j && e.kind[k] == EdgeKind::KeyKey)
-            .map(|k| e.dst[k])
-            .collect();
-        assert_eq!(out[0], j);
-        assert_eq!(out[1..], nbrs[..]);
-        assert_eq!(nbrs.len(), s.key_knn_k);
-        let total: f32 =
-            (0..e.len()).filter(|&k| e.src[k] == tracks.ids[nonkey]).map(|k| e.weight[k]).sum();
-        assert!((total - 1.0).abs() < 1e-5);
+        for form in [MetricForm::Weight, MetricForm::Inverse] {
+            let s = EdgeSettings { metric_form: form, ..EdgeSettings::defaults(Profile::Paper) };
+            let e = build(&tracks, &keys, &rotations, &s).unwrap();
+            let nt = tracks.num_frames;
+            let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
+            let mats: Vec<Mat3> = rotations.iter().map(|r| form.transform(s.r_xyz, *r)).collect();
+            let kf = key_frames(
+                &tracks,
+                &key_rows,
+                |t, p| apply(&mats[t], p),
+                |tr, i, t| tr.reliable(i, t),
+            );
+            for nonkey in (0..tracks.len()).filter(|&i| !keys.is_key[i]).step_by(97).take(8) {
+                let q: Vec<[f32; 3]> =
+                    (0..nt).map(|t| apply(&mats[t], tracks.pos(nonkey, t))).collect();
+                let u: Vec<f32> = (0..nt).map(|t| tracks.u(nonkey, t)).collect();
+                let j = argmin_sum_brute(&kf, &q, &u, form).unwrap().1 as usize;
+                let j = tracks.ids[key_rows[j]];
+                let out: Vec<u32> = (0..e.len())
+                    .filter(|&k| e.src[k] == tracks.ids[nonkey])
+                    .map(|k| e.dst[k])
+                    .collect();
+                let nbrs: Vec<u32> = (0..e.len())
+                    .filter(|&k| e.src[k] == j && e.kind[k] == EdgeKind::KeyKey)
+                    .map(|k| e.dst[k])
+                    .collect();
+                assert_eq!(out[0], j, "{form:?}");
+                assert_eq!(out[1..], nbrs[..], "{form:?}");
+                assert_eq!(nbrs.len(), s.key_knn_k);
+                let total: f32 = (0..e.len())
+                    .filter(|&k| e.src[k] == tracks.ids[nonkey])
+                    .map(|k| e.weight[k])
+                    .sum();
+                assert!((total - 1.0).abs() < 1e-5);
+            }
+        }
     }
 
     #[test]
@@ -663,10 +692,12 @@ mod tests {
             (KeyEdgeMode::UaKnn, KeyEdgeMode::MinmaxDistance)
         );
         assert!(p.needs_rotations() && !r.needs_rotations());
-        let yaml = "model: m\nuncertainty: u\nkeynodes: k\nout: o\nkey-edge-mode: euclidean\nr-xyz: [1, 1, 0.5]\n";
+        assert_eq!((p.metric_form, r.metric_form), (MetricForm::Weight, MetricForm::Inverse));
+        let yaml = "model: m\nuncertainty: u\nkeynodes: k\nout: o\nkey-edge-mode: euclidean\nr-xyz: [1, 1, 0.5]\nmetric-form: inverse\n";
         let o: EdgeParams = serde_saphyr::from_str(yaml).unwrap();
         let s = o.resolve().unwrap();
         assert_eq!((s.key_edge_mode, s.r_xyz), (KeyEdgeMode::Euclidean, [1.0, 1.0, 0.5]));
+        assert_eq!(s.metric_form, MetricForm::Inverse);
         let bad: EdgeParams = serde_saphyr::from_str(
             "model: m\nuncertainty: u\nkeynodes: k\nout: o\nr-xyz: [1, 0]\n",
         )
