@@ -109,7 +109,8 @@ pub struct Summary {
 /// Describe the Parquet file at `path`, reading it batch by batch.
 pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> {
     let pq = |source| Error::Parquet { path: path.to_path_buf(), cause: source };
-    let file = File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
+    let file =
+        File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
     let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq)?;
     let meta = builder.metadata().clone();
     let schema = builder.schema().clone();

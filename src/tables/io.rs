@@ -135,8 +135,13 @@ impl TableWriter {
     /// Close the file and rename it into place.
     pub fn finish(self) -> Result<()> {
         let path = self.path;
-        self.writer.close().map_err(|source| Error::Parquet { path: path.clone(), cause: source })?;
-        self.tmp.as_file().sync_all().map_err(|source| Error::Io { path: path.clone(), cause: source })?;
+        self.writer
+            .close()
+            .map_err(|source| Error::Parquet { path: path.clone(), cause: source })?;
+        self.tmp
+            .as_file()
+            .sync_all()
+            .map_err(|source| Error::Io { path: path.clone(), cause: source })?;
         self.tmp.persist(&path).map_err(|e| Error::Io { path: path.clone(), cause: e.error })?;
         Ok(())
     }
@@ -185,8 +190,8 @@ pub struct TableReader<R: Source = File> {
 impl TableReader<File> {
     /// Open `path` as table `T`, validating the whole schema.
     pub fn open<T: Table>(path: &Path) -> Result<Self> {
-        let file =
-            File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
+        let file = File::open(path)
+            .map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
         Self::new::<T>(path, file)
     }
 }
@@ -256,8 +261,10 @@ impl<R: Source> TableReader<R> {
 
     fn read(&self, groups: Option<Vec<usize>>) -> Result<RecordBatch> {
         let pq = |source| Error::Parquet { path: self.path.clone(), cause: source };
-        let src =
-            self.source.dup().map_err(|source| Error::Io { path: self.path.clone(), cause: source })?;
+        let src = self
+            .source
+            .dup()
+            .map_err(|source| Error::Io { path: self.path.clone(), cause: source })?;
         let mut builder =
             ParquetRecordBatchReaderBuilder::new_with_metadata(src, self.meta.clone());
         if let Some(g) = groups {
@@ -267,7 +274,8 @@ impl<R: Source> TableReader<R> {
         let schema = arrow::array::RecordBatchReader::schema(&reader);
         let mut batches = Vec::new();
         for b in reader {
-            batches.push(b.map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })?);
+            batches
+                .push(b.map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })?);
         }
         arrow::compute::concat_batches(&schema, &batches)
             .map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })
