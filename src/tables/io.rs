@@ -147,6 +147,45 @@ impl TableWriter {
     }
 }
 
+/// Writes a per-frame table: frames 0, 1, 2, ... one row group each, every frame with the
+/// same number of rows, atomically on [`FrameWriter::finish`]. The per-frame tables
+/// (trajectories, uncertainty, tracks) wrap it with their typed `write`.
+pub struct FrameWriter {
+    inner: TableWriter,
+    rows: usize,
+    next: u32,
+}
+
+impl FrameWriter {
+    /// Start writing table `T` with `rows` rows per frame to `path`.
+    pub fn create<T: Table>(path: &Path, rows: usize, provenance: &Provenance) -> Result<Self> {
+        Ok(FrameWriter { inner: TableWriter::create::<T>(path, provenance)?, rows, next: 0 })
+    }
+
+    /// Rows per frame.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// The frame the next [`FrameWriter::write`] stores.
+    pub fn next_frame(&self) -> u32 {
+        self.next
+    }
+
+    /// Append the next frame's row group.
+    pub fn write(&mut self, batch: &RecordBatch) -> Result<()> {
+        assert_eq!(batch.num_rows(), self.rows, "every frame has the same rows");
+        self.inner.write_group(batch)?;
+        self.next += 1;
+        Ok(())
+    }
+
+    /// Close and rename into place.
+    pub fn finish(self) -> Result<()> {
+        self.inner.finish()
+    }
+}
+
 /// Write a whole table of one row group per batch, atomically.
 pub fn write_table<T: Table>(
     path: &Path,

@@ -10,10 +10,10 @@ use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{BooleanArray, Float32Array, RecordBatch, UInt32Array};
-use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
+use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef};
 
-use super::io::{Columns, Table, TableReader, TableWriter, batch, field};
-use super::tracks_3d::{same_rows_per_frame, track_ids_in_order};
+use super::io::{Columns, FrameWriter, Table, batch, field};
+use super::tracks_3d::TrackFrames;
 use super::{Provenance, Result, validate};
 
 /// Marker type of the `tracks_2d` table.
@@ -55,71 +55,50 @@ pub fn frame_batch(frame: u32, f: &Tracks2dFrame) -> RecordBatch {
 }
 
 /// Streams frames into a `tracks_2d` file, atomically on finish.
-pub struct Tracks2dWriter {
-    inner: TableWriter,
-    num_tracks: usize,
-    next: u32,
-}
+pub struct Tracks2dWriter(FrameWriter);
 
 impl Tracks2dWriter {
     /// Start writing `num_tracks` tracks to `path`.
     pub fn create(path: &Path, num_tracks: usize, provenance: &Provenance) -> Result<Self> {
-        Ok(Tracks2dWriter {
-            inner: TableWriter::create::<Tracks2dTable>(path, provenance)?,
-            num_tracks,
-            next: 0,
-        })
+        Ok(Tracks2dWriter(FrameWriter::create::<Tracks2dTable>(path, num_tracks, provenance)?))
     }
 
     /// Append the next frame (frames come as 0, 1, 2, ...).
     pub fn write(&mut self, f: &Tracks2dFrame) -> Result<()> {
-        assert_eq!(f.xy.len(), self.num_tracks, "one position per track");
-        assert_eq!(f.visible.len(), self.num_tracks, "one visibility per track");
-        self.inner.write_group(&frame_batch(self.next, f))?;
-        self.next += 1;
-        Ok(())
+        assert_eq!(f.visible.len(), f.xy.len(), "one visibility per track");
+        self.0.write(&frame_batch(self.0.next_frame(), f))
     }
 
     /// Close and rename into place.
     pub fn finish(self) -> Result<()> {
-        self.inner.finish()
+        self.0.finish()
     }
 }
 
 /// Reads a `tracks_2d` file frame by frame, validating each frame.
-pub struct Tracks2dReader {
-    inner: TableReader,
-    num_tracks: usize,
-}
+pub struct Tracks2dReader(TrackFrames);
 
 impl Tracks2dReader {
     /// Open `path`; every frame must hold the same number of tracks.
     pub fn open(path: &Path) -> Result<Self> {
-        let inner = TableReader::open::<Tracks2dTable>(path)?;
-        let num_tracks =
-            if inner.num_row_groups() > 0 { inner.row_group_rows(0) as usize } else { 0 };
-        same_rows_per_frame(&inner, num_tracks)?;
-        Ok(Tracks2dReader { inner, num_tracks })
+        Ok(Tracks2dReader(TrackFrames::open::<Tracks2dTable>(path)?))
     }
 
     /// Number of frames T.
     pub fn num_frames(&self) -> usize {
-        self.inner.num_row_groups()
+        self.0.inner.num_row_groups()
     }
 
     /// Number of tracks M.
     pub fn num_tracks(&self) -> usize {
-        self.num_tracks
+        self.0.num_tracks
     }
 
     /// The tracks of frame `t`, validated.
     pub fn frame(&self, t: usize) -> Result<Tracks2dFrame> {
-        let path = self.inner.path();
-        let b = self.inner.read_group(t)?;
-        let row0 = self.inner.row_group_offset(t);
+        let (b, row0) = self.0.group(t)?;
+        let path = self.0.inner.path();
         let c = Columns::new(path, &b);
-        validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
-        track_ids_in_order(path, row0, c.values::<UInt32Type>("track_id")?)?;
         let x = c.values::<Float32Type>("x")?;
         let y = c.values::<Float32Type>("y")?;
         validate::finite(path, "x", row0, x)?;

@@ -10,8 +10,8 @@ use std::sync::Arc;
 use arrow::array::{ArrayRef, Float32Array, RecordBatch, UInt32Array};
 use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
 
-use super::io::{Columns, Table, TableReader, TableWriter, batch, field};
-use super::{Error, Provenance, Result, validate};
+use super::io::{Columns, FrameWriter, Table, TableReader, batch, field};
+use super::{Provenance, Result, validate};
 
 /// Marker type of the `tracks_3d` table.
 pub struct Tracks3dTable;
@@ -46,70 +46,49 @@ pub fn frame_batch(frame: u32, positions: &[[f32; 3]]) -> RecordBatch {
 }
 
 /// Streams frames into a `tracks_3d` file, atomically on finish.
-pub struct Tracks3dWriter {
-    inner: TableWriter,
-    num_tracks: usize,
-    next: u32,
-}
+pub struct Tracks3dWriter(FrameWriter);
 
 impl Tracks3dWriter {
     /// Start writing `num_tracks` tracks to `path`.
     pub fn create(path: &Path, num_tracks: usize, provenance: &Provenance) -> Result<Self> {
-        Ok(Tracks3dWriter {
-            inner: TableWriter::create::<Tracks3dTable>(path, provenance)?,
-            num_tracks,
-            next: 0,
-        })
+        Ok(Tracks3dWriter(FrameWriter::create::<Tracks3dTable>(path, num_tracks, provenance)?))
     }
 
     /// Append the next frame's positions `[M, 3]` (frames come as 0, 1, 2, ...).
     pub fn write(&mut self, positions: &[[f32; 3]]) -> Result<()> {
-        assert_eq!(positions.len(), self.num_tracks, "one position per track");
-        self.inner.write_group(&frame_batch(self.next, positions))?;
-        self.next += 1;
-        Ok(())
+        self.0.write(&frame_batch(self.0.next_frame(), positions))
     }
 
     /// Close and rename into place.
     pub fn finish(self) -> Result<()> {
-        self.inner.finish()
+        self.0.finish()
     }
 }
 
 /// Reads a `tracks_3d` file frame by frame, validating each frame.
-pub struct Tracks3dReader {
-    inner: TableReader,
-    num_tracks: usize,
-}
+pub struct Tracks3dReader(TrackFrames);
 
 impl Tracks3dReader {
     /// Open `path`; every frame must hold the same number of tracks.
     pub fn open(path: &Path) -> Result<Self> {
-        let inner = TableReader::open::<Tracks3dTable>(path)?;
-        let num_tracks =
-            if inner.num_row_groups() > 0 { inner.row_group_rows(0) as usize } else { 0 };
-        same_rows_per_frame(&inner, num_tracks)?;
-        Ok(Tracks3dReader { inner, num_tracks })
+        Ok(Tracks3dReader(TrackFrames::open::<Tracks3dTable>(path)?))
     }
 
     /// Number of frames T.
     pub fn num_frames(&self) -> usize {
-        self.inner.num_row_groups()
+        self.0.inner.num_row_groups()
     }
 
     /// Number of tracks M.
     pub fn num_tracks(&self) -> usize {
-        self.num_tracks
+        self.0.num_tracks
     }
 
     /// Positions `[M, 3]` at frame `t`, validated.
     pub fn frame(&self, t: usize) -> Result<Vec<[f32; 3]>> {
-        let path = self.inner.path();
-        let b = self.inner.read_group(t)?;
-        let row0 = self.inner.row_group_offset(t);
+        let (b, row0) = self.0.group(t)?;
+        let path = self.0.inner.path();
         let c = Columns::new(path, &b);
-        validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
-        track_ids_in_order(path, row0, c.values::<UInt32Type>("track_id")?)?;
         let mut cols = Vec::with_capacity(3);
         for name in ["x", "y", "z"] {
             let v = c.values::<Float32Type>(name)?;
@@ -120,33 +99,43 @@ impl Tracks3dReader {
     }
 }
 
-/// Every row group of a per-frame track table holds `m` rows.
-pub(crate) fn same_rows_per_frame(r: &TableReader, m: usize) -> Result<()> {
-    for g in 0..r.num_row_groups() {
-        if r.row_group_rows(g) != m as u64 {
-            return Err(Error::Frame {
-                path: r.path().into(),
-                frame: g as u64,
-                msg: format!(
-                    "{} rows, expected {m} (one per track, as in frame 0)",
-                    r.row_group_rows(g)
-                ),
-            });
-        }
-    }
-    Ok(())
+/// The frame-by-frame reading shared by the track tables: M rows in every frame, the
+/// frame column and track ids 0..M-1 checked on each read.
+pub(crate) struct TrackFrames {
+    pub(crate) inner: TableReader,
+    pub(crate) num_tracks: usize,
 }
 
-/// Track ids of one frame run 0..M-1 in order.
-pub(crate) fn track_ids_in_order(path: &Path, row0: u64, ids: &[u32]) -> Result<()> {
-    match ids.iter().enumerate().find(|(i, id)| **id as usize != *i) {
-        Some((i, id)) => Err(Error::Value {
-            path: path.into(),
-            column: "track_id".into(),
-            row: row0 + i as u64,
-            msg: format!("id {id} where {i} was expected (ids run 0..M-1 in every frame)"),
-        }),
-        None => Ok(()),
+impl TrackFrames {
+    pub(crate) fn open<T: Table>(path: &Path) -> Result<Self> {
+        let inner = TableReader::open::<T>(path)?;
+        let num_tracks =
+            if inner.num_row_groups() > 0 { inner.row_group_rows(0) as usize } else { 0 };
+        validate::rows_per_frame(
+            &inner,
+            num_tracks,
+            &format!("{num_tracks} (one per track, as in frame 0)"),
+        )?;
+        Ok(TrackFrames { inner, num_tracks })
+    }
+
+    /// Row group `t` with its frame column and ids checked, and its first file row.
+    pub(crate) fn group(&self, t: usize) -> Result<(RecordBatch, u64)> {
+        let path = self.inner.path();
+        let b = self.inner.read_group(t)?;
+        let row0 = self.inner.row_group_offset(t);
+        let c = Columns::new(path, &b);
+        validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
+        let ids = c.values::<UInt32Type>("track_id")?;
+        validate::ids_in_order(
+            path,
+            "track_id",
+            row0,
+            ids,
+            |i| i as u32,
+            "ids run 0..M-1 in every frame",
+        )?;
+        Ok((b, row0))
     }
 }
 

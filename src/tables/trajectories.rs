@@ -10,8 +10,8 @@ use std::sync::Arc;
 use arrow::array::{ArrayRef, Float32Array, RecordBatch, UInt32Array};
 use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
 
-use super::io::{Columns, Table, TableReader, TableWriter, batch, field};
-use super::{Error, Provenance, Result, validate};
+use super::io::{Columns, FrameWriter, Table, TableReader, batch, field};
+use super::{Provenance, Result, validate};
 use crate::model::FrameState;
 
 /// Marker type of the `trajectories` table.
@@ -59,29 +59,22 @@ pub fn frame_batch(ids: &[u32], s: &FrameState) -> RecordBatch {
 
 /// Streams frames into a `trajectories` file, one row group each, atomically on finish.
 pub struct TrajectoryWriter {
-    inner: TableWriter,
+    inner: FrameWriter,
     ids: Vec<u32>,
-    next: u32,
 }
 
 impl TrajectoryWriter {
     /// Start writing to `path` for Gaussians `ids` (canonical order).
     pub fn create(path: &Path, ids: &[u32], provenance: &Provenance) -> Result<Self> {
-        Ok(TrajectoryWriter {
-            inner: TableWriter::create::<TrajectoriesTable>(path, provenance)?,
-            ids: ids.to_vec(),
-            next: 0,
-        })
+        let inner = FrameWriter::create::<TrajectoriesTable>(path, ids.len(), provenance)?;
+        Ok(TrajectoryWriter { inner, ids: ids.to_vec() })
     }
 
     /// Append the next frame (frames must come as 0, 1, 2, ...).
     pub fn write(&mut self, s: &FrameState) -> Result<()> {
-        assert_eq!(s.frame, self.next, "frames are written in order");
-        assert_eq!(s.position.len(), self.ids.len(), "one position per Gaussian");
-        assert_eq!(s.rotation.len(), self.ids.len(), "one rotation per Gaussian");
-        self.inner.write_group(&frame_batch(&self.ids, s))?;
-        self.next += 1;
-        Ok(())
+        assert_eq!(s.frame, self.inner.next_frame(), "frames are written in order");
+        assert_eq!(s.rotation.len(), s.position.len(), "one rotation per Gaussian");
+        self.inner.write(&frame_batch(&self.ids, s))
     }
 
     /// Close and rename into place.
@@ -100,19 +93,7 @@ impl TrajectoryReader {
     /// Open `path`, checking that every frame has one row per Gaussian of `ids`.
     pub fn open(path: &Path, ids: &[u32]) -> Result<Self> {
         let inner = TableReader::open::<TrajectoriesTable>(path)?;
-        for g in 0..inner.num_row_groups() {
-            if inner.row_group_rows(g) != ids.len() as u64 {
-                return Err(Error::Frame {
-                    path: path.into(),
-                    frame: g as u64,
-                    msg: format!(
-                        "{} rows, expected one per Gaussian ({})",
-                        inner.row_group_rows(g),
-                        ids.len()
-                    ),
-                });
-            }
-        }
+        validate::rows_per_frame(&inner, ids.len(), &format!("one per Gaussian ({})", ids.len()))?;
         Ok(TrajectoryReader { inner, ids: ids.to_vec() })
     }
 
@@ -129,17 +110,14 @@ impl TrajectoryReader {
         let c = Columns::new(path, &b);
         validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
         let id = c.values::<UInt32Type>("gaussian_id")?;
-        if let Some(i) = (0..id.len()).find(|&i| id[i] != self.ids[i]) {
-            return Err(Error::Value {
-                path: path.into(),
-                column: "gaussian_id".into(),
-                row: row0 + i as u64,
-                msg: format!(
-                    "id {} where the gaussians table has {} (rows of each frame follow the gaussians order)",
-                    id[i], self.ids[i]
-                ),
-            });
-        }
+        validate::ids_in_order(
+            path,
+            "gaussian_id",
+            row0,
+            id,
+            |i| self.ids[i],
+            "rows of each frame follow the gaussians order",
+        )?;
         let mut f = Vec::with_capacity(7);
         for name in ["x", "y", "z", "qw", "qx", "qy", "qz"] {
             let v = c.values::<Float32Type>(name)?;

@@ -12,7 +12,7 @@ use std::sync::Arc;
 use arrow::array::{ArrayRef, BooleanArray, Float32Array, RecordBatch, UInt32Array};
 use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
 
-use super::io::{Columns, Table, TableReader, TableWriter, batch, field};
+use super::io::{Columns, FrameWriter, Table, TableReader, batch, field};
 use super::{Error, Provenance, Result, validate};
 
 /// Marker type of the `uncertainty` table.
@@ -66,21 +66,20 @@ fn frame_batch(ids: &[u32], f: &UncertaintyFrame) -> RecordBatch {
 
 /// Streams frames into an `uncertainty` file, one row group each, atomically on finish.
 pub struct UncertaintyWriter {
-    inner: TableWriter,
+    inner: FrameWriter,
     ids: Vec<u32>,
-    next: u32,
 }
 
 impl UncertaintyWriter {
     /// Start writing to `path` for Gaussians `ids` (the order of every frame).
     pub fn create(path: &Path, ids: &[u32], provenance: &Provenance) -> Result<Self> {
-        let inner = TableWriter::create::<UncertaintyTable>(path, provenance)?;
-        Ok(UncertaintyWriter { inner, ids: ids.to_vec(), next: 0 })
+        let inner = FrameWriter::create::<UncertaintyTable>(path, ids.len(), provenance)?;
+        Ok(UncertaintyWriter { inner, ids: ids.to_vec() })
     }
 
     /// Append the next frame (frames come as 0, 1, 2, ...; `[N]` arrays of `ids` length).
     pub fn write(&mut self, f: &UncertaintyFrame) -> Result<()> {
-        assert_eq!(f.frame, self.next, "frames are written in order");
+        assert_eq!(f.frame, self.inner.next_frame(), "frames are written in order");
         let n = self.ids.len();
         assert!(
             [f.sum_w2.len(), f.sum_w.len(), f.n_pixels.len(), f.converged.len(), f.u.len()]
@@ -88,9 +87,7 @@ impl UncertaintyWriter {
                 .all(|l| *l == n),
             "one value per Gaussian"
         );
-        self.inner.write_group(&frame_batch(&self.ids, f))?;
-        self.next += 1;
-        Ok(())
+        self.inner.write(&frame_batch(&self.ids, f))
     }
 
     /// Close and rename into place.
@@ -121,15 +118,7 @@ impl UncertaintyReader {
         let first = inner.read_group(0)?;
         let ids = Columns::new(&path, &first).values::<UInt32Type>("gaussian_id")?.to_vec();
         validate::unique_ids(&path, "gaussian_id", 0, &ids)?;
-        for g in 0..inner.num_row_groups() {
-            if inner.row_group_rows(g) != ids.len() as u64 {
-                return Err(Error::Frame {
-                    path,
-                    frame: g as u64,
-                    msg: format!("{} rows, frame 0 has {}", inner.row_group_rows(g), ids.len()),
-                });
-            }
-        }
+        validate::rows_per_frame(&inner, ids.len(), &format!("{} (as in frame 0)", ids.len()))?;
         Ok(UncertaintyReader { inner, ids })
     }
 
@@ -156,17 +145,14 @@ impl UncertaintyReader {
         let c = Columns::new(path, &b);
         validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
         let id = c.values::<UInt32Type>("gaussian_id")?;
-        if let Some(i) = (0..id.len()).find(|&i| id[i] != self.ids[i]) {
-            return Err(Error::Value {
-                path: path.into(),
-                column: "gaussian_id".into(),
-                row: row0 + i as u64,
-                msg: format!(
-                    "id {} where frame 0 has {} (every frame lists the same order)",
-                    id[i], self.ids[i]
-                ),
-            });
-        }
+        validate::ids_in_order(
+            path,
+            "gaussian_id",
+            row0,
+            id,
+            |i| self.ids[i],
+            "every frame lists the Gaussians in the order of frame 0",
+        )?;
         let sum_w2 = c.values::<Float32Type>("sum_w2")?;
         let sum_w = c.values::<Float32Type>("sum_w")?;
         let u = c.values::<Float32Type>("u")?;

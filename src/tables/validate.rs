@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use super::{Error, Result};
+use super::{Error, Result, TableReader};
 
 /// Tolerance on `|q| - 1` for stored quaternions.
 pub const QUAT_NORM_TOL: f32 = 1e-3;
@@ -101,6 +101,40 @@ pub fn frame_column(path: &Path, group: usize, row0: u64, frames: &[u32]) -> Res
                 row0 + i as u64,
                 frames[i]
             ),
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Every row group of a per-frame table holds `rows` rows; `expected` says what they are
+/// (e.g. "one per Gaussian (N)") for the message.
+pub fn rows_per_frame(r: &TableReader, rows: usize, expected: &str) -> Result<()> {
+    match (0..r.num_row_groups()).find(|&g| r.row_group_rows(g) != rows as u64) {
+        Some(g) => Err(Error::Frame {
+            path: r.path().into(),
+            frame: g as u64,
+            msg: format!("{} rows, expected {expected}", r.row_group_rows(g)),
+        }),
+        None => Ok(()),
+    }
+}
+
+/// The id column of one frame repeats `expected` row by row (`expected(i)` is row i's id);
+/// `why` completes the message, e.g. "ids run 0..M-1 in every frame".
+pub fn ids_in_order(
+    path: &Path,
+    column: &str,
+    row0: u64,
+    ids: &[u32],
+    expected: impl Fn(usize) -> u32,
+    why: &str,
+) -> Result<()> {
+    match ids.iter().enumerate().find(|(i, id)| **id != expected(*i)) {
+        Some((i, id)) => Err(Error::Value {
+            path: path.into(),
+            column: column.into(),
+            row: row0 + i as u64,
+            msg: format!("id {id} where {} was expected ({why})", expected(i)),
         }),
         None => Ok(()),
     }
