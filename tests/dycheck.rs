@@ -660,4 +660,16 @@ fn pck_t_of_synthetic_dycheck_keypoints() {
         stray.display()
     );
     assert_eq!((code, err), (2, want));
+
+    // Keypoint files of different J.
+    std::fs::remove_file(&stray).unwrap();
+    let short = synth.join("dycheck/keypoint/2x/train/0_00003.json");
+    std::fs::write(&short, "[[1, 2, 1]]").unwrap();
+    let (code, err) = import(&synth.join("dycheck"), &d.join("I3"), &["--quiet"]);
+    let want = format!(
+        "error: {}: has 1 keypoints but {} has 16\n",
+        short.display(),
+        synth.join("dycheck/keypoint/2x/train/0_00000.json").display()
+    );
+    assert_eq!((code, err), (2, want));
 }
