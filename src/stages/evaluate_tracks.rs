@@ -310,4 +310,24 @@ mod tests {
         assert!(md.contains("| 0.0100 | 0.500 | 1.000 |"), "{md}");
         assert!(md.contains("4 tracks, 2 keyframes, 4 pairs"), "{md}");
     }
+
+    #[test]
+    fn pck_t_markdown_names_pairs_and_points() {
+        let s = PckTSummary {
+            model: "m".into(),
+            keypoints: 16,
+            keyframes: (0..10).collect(),
+            pairs: 90,
+            points: 1400,
+            threshold_px: 24.0,
+            pck_t: 0.9875,
+            epe_px: 1.234,
+        };
+        let md = s.markdown();
+        assert!(md.contains("| PCK-T | EPE (px) |\n|---|---|\n| 0.988 | 1.23 |"), "{md}");
+        assert!(
+            md.contains("(16 keypoints, 10 keyframes, 90 pairs, 1400 points, threshold 24.0 px)"),
+            "{md}"
+        );
+    }
 }
