@@ -1,6 +1,10 @@
 //! `usplat4d import dycheck` end to end: the real paper-windmill camera files, a round trip
-//! through `write_layout`, and a bad-input corpus made by breaking one windmill file at a
-//! time (exact error text pinned). Tests needing shared/data skip with a note without it.
+//! through `write_layout`, a bad-input corpus made by breaking one windmill file at a
+//! time (exact error text pinned), and PCK-T: `synth --layout dycheck` along a hand-made
+//! DyCheck camera arc → `import dycheck` → `evaluate --model` of the oracle and of a
+//! shifted model. Tests needing shared/data skip with a note without it; the PCK-T test
+//! needs none. Not validated here: agreement with DyCheck's own PCK-T code on real
+//! keypoints (the shared paper-windmill files have none).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -209,7 +213,10 @@ fn layout_round_trip() {
     let (code, _) = import(&layout, &norm_dir, &["--quiet", "--world", "dycheck"]);
     assert_eq!(code, 0);
     let meta = read_json(&norm_dir.join("scene.json"));
-    assert_eq!(meta["keypoints"], "keypoint/2x/train");
+    assert_eq!(
+        meta["keypoints"],
+        serde_json::json!({"dir": "keypoint/2x/train", "frames": {"0_00002": 2}})
+    );
     assert_eq!(
         std::fs::read(norm_dir.join("keypoint/2x/train/0_00002.json")).unwrap(),
         b"[[10.0, 20.0, 1.0]]"
@@ -452,4 +459,217 @@ fn bad_inputs_give_exact_errors() {
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// A DyCheck camera file looking from `position` at the origin (1x size 180x240, f = 200).
+fn look_at_camera(position: [f64; 3]) -> Value {
+    let p = glam::DVec3::from_array(position);
+    let z = (-p).normalize();
+    let x = z.cross(glam::DVec3::Y).normalize();
+    let y = z.cross(x);
+    serde_json::json!({
+        "orientation": [x.to_array(), y.to_array(), z.to_array()],
+        "position": position,
+        "focal_length": 200.0,
+        "principal_point": [90.0, 120.0],
+        "skew": 0.0,
+        "pixel_aspect_ratio": 1.0,
+        "radial_distortion": [0.0, 0.0, 0.0],
+        "tangential_distortion": [0.0, 0.0],
+        "image_size": [180, 240],
+    })
+}
+
+/// A DyCheck camera path without images: camera 0 on an arc around the origin for frames
+/// 0..t (training), camera 1 fixed at frames 0 and t/2 (validation).
+fn arc_trajectory(dir: &Path, t: u32) {
+    std::fs::create_dir_all(dir.join("camera")).unwrap();
+    std::fs::create_dir_all(dir.join("splits")).unwrap();
+    let mut train = Vec::new();
+    for f in 0..t {
+        let a = (-30.0 + 5.0 * f as f64).to_radians();
+        let name = format!("0_{f:05}");
+        write_json(
+            &dir.join(format!("camera/{name}.json")),
+            &look_at_camera([2.0 * a.sin(), -0.6, -2.0 * a.cos()]),
+        );
+        train.push(name);
+    }
+    let val_times = [0, t / 2];
+    for f in val_times {
+        write_json(&dir.join(format!("camera/1_{f:05}.json")), &look_at_camera([1.6, -0.6, -1.2]));
+    }
+    write_json(
+        &dir.join("splits/train.json"),
+        &serde_json::json!({"frame_names": train, "time_ids": (0..t).collect::<Vec<_>>(), "camera_ids": vec![0; t as usize]}),
+    );
+    write_json(
+        &dir.join("splits/val.json"),
+        &serde_json::json!({
+            "frame_names": val_times.map(|f| format!("1_{f:05}")),
+            "time_ids": val_times,
+            "camera_ids": [1, 1],
+        }),
+    );
+}
+
+/// `evaluate --model` scores of `model` on `scene` (renders of its eval views in `renders`):
+/// the `pck_t` entry of summary.json, and stdout.
+fn pck_t(scene: &Path, renders: &Path, model: &Path, out: &Path) -> (Value, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
+        .args(["evaluate", "--lpips", "off", "--renders", s(renders), "--scene", s(scene)])
+        .args(["--model", s(model), "--out", s(out)])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    (
+        read_json(&out.join("summary.json"))["pck_t"].clone(),
+        String::from_utf8_lossy(&o.stdout).into(),
+    )
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// See: issue 6. synth → DyCheck layout with keypoints → import → PCK-T near 1 for the
+/// oracle, clearly lower for the oracle shifted sideways; malformed keypoints name the file
+/// and row, and keypoint files that are not training images are rejected at import.
+#[test]
+fn pck_t_of_synthetic_dycheck_keypoints() {
+    use usplat4d::model::{FrameState, Model};
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    arc_trajectory(&d.join("traj"), 12);
+    let fox = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/data/Fox.glb");
+    let synth = d.join("S");
+    let traj = format!("dycheck:{}", d.join("traj").display());
+    let (code, err) = usplat4d(&[
+        "synth",
+        "--gltf",
+        s(&fox),
+        "--out",
+        s(&synth),
+        "--trajectory",
+        &traj,
+        "--layout",
+        "dycheck",
+        "--gaussians",
+        "1500",
+        "--tracks",
+        "128",
+        "--quiet",
+    ]);
+    assert_eq!((code, err.as_str()), (0, ""));
+
+    // Keypoints on keyframes(12, 10), J = 16, DyCheck's 2x integer format.
+    let kp = synth.join("dycheck/keypoint/2x/train");
+    let mut names: Vec<String> = std::fs::read_dir(&kp)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    let keyframes = [0, 1, 2, 3, 4, 6, 7, 8, 9, 10];
+    let mut want: Vec<String> = keyframes.iter().map(|f| format!("0_{f:05}.json")).collect();
+    want.push("skeleton.json".into());
+    assert_eq!(names, want);
+    let rows = read_json(&kp.join("0_00004.json"));
+    let rows = rows.as_array().unwrap();
+    assert_eq!(rows.len(), 16);
+    for r in rows {
+        let v: Vec<f64> = r.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+        assert!(v.iter().all(|x| x.fract() == 0.0) && (v[2] == 0.0 || v[2] == 1.0), "{r}");
+        assert!((0.0..90.0).contains(&v[0]) && (0.0..120.0).contains(&v[1]), "{r}");
+    }
+    assert_eq!(read_json(&kp.join("skeleton.json"))["parents"].as_array().unwrap().len(), 16);
+
+    let scene = d.join("I");
+    let (code, err) = import(&synth.join("dycheck"), &scene, &["--quiet"]);
+    assert_eq!((code, err.as_str()), (0, ""));
+    let frames = &read_json(&scene.join("scene.json"))["keypoints"]["frames"];
+    assert_eq!(frames["0_00006"], 6);
+    let renders = d.join("R");
+    let oracle = synth.join("oracle");
+    let (code, err) = usplat4d(&[
+        "render",
+        "--model",
+        s(&oracle),
+        "--scene",
+        s(&scene),
+        "--split",
+        "eval",
+        "--out",
+        s(&renders),
+        "--quiet",
+    ]);
+    assert_eq!((code, err.as_str()), (0, ""));
+    let (good, stdout) = pck_t(&scene, &renders, &oracle, &d.join("E"));
+    assert!(
+        stdout.contains("## PCK-T of oracle (16 keypoints, 10 keyframes, 90 pairs"),
+        "{stdout}"
+    );
+    assert_eq!(good["keyframes"], serde_json::json!(keyframes));
+    assert_eq!((good["pairs"].as_u64(), good["threshold_px"].as_f64()), (Some(90), Some(6.0)));
+    let (score, points) = (good["pck_t"].as_f64().unwrap(), good["points"].as_u64().unwrap());
+    // Not 1: the SoM read-out at keypoints near silhouettes mixes surfaces (the 3D tracking
+    // of the same oracle has the same ceiling).
+    assert!(score > 0.9 && points > 90 * 8, "oracle: {good}");
+
+    // The oracle shifted by 0.1 world units along world x (about 8 px in these views).
+    let m = Model::load(&oracle).unwrap();
+    let frames = (0..m.num_frames()).map(|t| {
+        m.frame(t).map(|f| FrameState {
+            position: f.position.iter().map(|p| [p[0] + 0.1, p[1], p[2]]).collect(),
+            ..f
+        })
+    });
+    let shifted = d.join("shifted");
+    Model::save(&shifted, &m.gaussians, frames, &usplat4d::tables::Provenance::default()).unwrap();
+    let (bad, _) = pck_t(&scene, &renders, &shifted, &d.join("E2"));
+    eprintln!("PCK-T: oracle {good}\nshifted {bad}");
+    assert!(bad["pck_t"].as_f64().unwrap() < score - 0.3, "shifted: {bad} oracle: {good}");
+
+    // A malformed keypoint file names the file and the row.
+    let broken = scene.join("keypoint/2x/train/0_00003.json");
+    std::fs::write(&broken, "[[1, 2, 1], [3, 4]]").unwrap();
+    let (code, err) = usplat4d(&[
+        "evaluate",
+        "--lpips",
+        "off",
+        "--renders",
+        s(&renders),
+        "--scene",
+        s(&scene),
+        "--model",
+        s(&oracle),
+        "--out",
+        s(&d.join("E3")),
+    ]);
+    let want = format!(
+        "error: {}: row 1: expected [x, y, visible] numbers, got [3,4]\n",
+        broken.display()
+    );
+    assert_eq!((code, err), (2, want));
+
+    // A keypoint file that is not a training image of the sequence.
+    let stray = synth.join("dycheck/keypoint/2x/train/1_00000.json");
+    std::fs::write(&stray, "[[1, 2, 1]]").unwrap();
+    let (code, err) = import(&synth.join("dycheck"), &d.join("I2"), &["--quiet"]);
+    let want = format!(
+        "error: {}: '1_00000' is not a training image of splits/train.json\n",
+        stray.display()
+    );
+    assert_eq!((code, err), (2, want));
+
+    // Keypoint files of different J.
+    std::fs::remove_file(&stray).unwrap();
+    let short = synth.join("dycheck/keypoint/2x/train/0_00003.json");
+    std::fs::write(&short, "[[1, 2, 1]]").unwrap();
+    let (code, err) = import(&synth.join("dycheck"), &d.join("I3"), &["--quiet"]);
+    let want = format!(
+        "error: {}: has 1 keypoints but {} has 16\n",
+        short.display(),
+        synth.join("dycheck/keypoint/2x/train/0_00000.json").display()
+    );
+    assert_eq!((code, err), (2, want));
 }

@@ -13,7 +13,7 @@
 //! least one point ([`average_pairs`]). The math is in pure functions over arrays (`[M, 3]`
 //! points, M tracked points) so that it is testable without a renderer; the model-level
 //! drivers [`track_3d`] and [`pck_t_model`] take the ground truth in memory
-//! ([`GtTracks3d`], [`GtTracks2d`]).
+//! ([`GtTracks3d`], [`GtKeypoints`]).
 
 use glam::DVec3;
 
@@ -64,6 +64,8 @@ pub struct PairScore {
 pub struct TrackingScore {
     /// Pairs with at least one valid point.
     pub pairs: usize,
+    /// Valid points summed over the pairs.
+    pub points: usize,
     /// Mean over pairs of the per-pair mean EPE.
     pub epe: f64,
     /// Mean over pairs of the per-pair PCK, one per threshold.
@@ -105,6 +107,7 @@ pub fn average_pairs(pairs: &[Option<PairScore>]) -> Option<TrackingScore> {
     let n = scored.len() as f64;
     Some(TrackingScore {
         pairs: scored.len(),
+        points: scored.iter().map(|p| p.points).sum(),
         epe: scored.iter().map(|p| p.epe).sum::<f64>() / n,
         pck: (0..first.pck.len())
             .map(|k| scored.iter().map(|p| p.pck[k]).sum::<f64>() / n)
@@ -209,13 +212,16 @@ pub struct GtTracks3d {
     pub visible: Vec<Vec<bool>>,
 }
 
-/// Ground-truth 2D keypoints in the training camera: `pixels[t]` `[M, 2]` (centres at
-/// +0.5) and `visible[t]` `[M]`.
+/// Ground-truth 2D keypoints in the training camera at keyframes: `frames[k]` is keyframe
+/// k's training frame, `pixels[k]` `[J, 2]` its keypoints (scene pixel coordinates,
+/// centres at +0.5) and `visible[k]` `[J]` their visibility.
 #[derive(Debug, Clone, PartialEq)]
-pub struct GtTracks2d {
-    /// `[T][M, 2]`.
+pub struct GtKeypoints {
+    /// `[K]` training frames.
+    pub frames: Vec<usize>,
+    /// `[K][J, 2]`.
     pub pixels: Vec<Vec<[f32; 2]>>,
-    /// `[T][M]`.
+    /// `[K][J]`.
     pub visible: Vec<Vec<bool>>,
 }
 
@@ -315,40 +321,49 @@ fn gt_frame(gt: &GtTracks3d, t: usize) -> Result<(&[[f32; 3]], &[bool]), Error> 
     }
 }
 
-/// DyCheck's PCK-T of `model`: for every ordered pair (s, t) of distinct `frames`, the
-/// keypoints visible in both are queried at their ground-truth source pixels, predicted
-/// SoM-style at frame t, projected into the frame-t training camera and counted correct
-/// within `0.05·max(W, H)` of the ground-truth target pixel.
+/// DyCheck's PCK-T of `model` (formats-and-protocols.md §3.3): for every ordered pair
+/// (s, t) of distinct keyframes of `gt` (90 pairs for 10 keyframes, as MoSca's packs;
+/// DyCheck's own loop also scores the 10 pairs s = t), the keypoints visible in both are
+/// queried at their ground-truth source pixels, predicted SoM-style at frame t, projected
+/// into the frame-t training camera and counted correct within `0.05·max(W, H)` of the
+/// ground-truth target pixel. Pairs without common keypoints are skipped; the score is the
+/// mean over pairs of the per-pair fraction (EPE in pixels alongside).
 pub fn pck_t_model(
     model: &Model,
     scene: &Scene,
-    gt: &GtTracks2d,
-    frames: &[usize],
+    gt: &GtKeypoints,
     renderer: &dyn Renderer,
 ) -> Result<Option<TrackingScore>, Error> {
-    let states = keyframe_states(model, scene, frames)?;
+    let k = gt.frames.len();
+    let j = gt.pixels.first().map_or(0, Vec::len);
+    if gt.pixels.len() != k
+        || gt.visible.len() != k
+        || gt.pixels.iter().zip(&gt.visible).any(|(p, v)| p.len() != j || v.len() != j)
+    {
+        return Err(Error::Mismatch(format!(
+            "ground-truth keypoints: {k} frames but {} pixel and {} visibility lists, or a \
+             keyframe without {j} keypoints",
+            gt.pixels.len(),
+            gt.visible.len()
+        )));
+    }
+    let states = keyframe_states(model, scene, &gt.frames)?;
     let train = scene.train_by_frame();
     let settings = RenderSettings { background: [0.0; 3], ..RenderSettings::default() };
-    let frame2d = |t: usize| match (gt.pixels.get(t), gt.visible.get(t)) {
-        (Some(p), Some(v)) if p.len() == v.len() => Ok((p, v)),
-        _ => Err(Error::Mismatch(format!(
-            "ground-truth keypoints have no frame {t} (or its arrays disagree)"
-        ))),
-    };
     let targets: Vec<&[[f32; 3]]> = states.iter().map(|(st, _)| st.position.as_slice()).collect();
     let mut pairs = Vec::new();
-    for (si, &s) in frames.iter().enumerate() {
-        let (ps, vs) = frame2d(s)?;
+    for (si, &s) in gt.frames.iter().enumerate() {
+        let (ps, vs) = (&gt.pixels[si], &gt.visible[si]);
         let (state, cam) = &states[si];
         let preds =
             predict_positions(renderer, cam, &splat_inputs(model, state), &targets, ps, &settings)
                 .map_err(|source| Error::Render { frame: s, source })?;
-        for (&t, pred3) in frames.iter().zip(&preds) {
-            if s == t {
+        for (ti, pred3) in preds.iter().enumerate() {
+            if ti == si {
                 continue;
             }
-            let (pt, vt) = frame2d(t)?;
-            let tcam = train[t];
+            let (pt, vt) = (&gt.pixels[ti], &gt.visible[ti]);
+            let tcam = train[gt.frames[ti]];
             let pred: Vec<[f32; 2]> = pred3
                 .iter()
                 .map(|p| {
@@ -356,7 +371,7 @@ pub fn pck_t_model(
                         .map_or([f32::INFINITY; 2], |(x, y, _)| [x as f32, y as f32])
                 })
                 .collect();
-            let valid: Vec<bool> = (0..ps.len()).map(|m| vs[m] && vt[m]).collect();
+            let valid: Vec<bool> = (0..j).map(|m| vs[m] && vt[m]).collect();
             pairs.push(score_pair(&pred, pt, &valid, &[pck_t_threshold(tcam.width, tcam.height)]));
         }
     }
@@ -387,7 +402,7 @@ mod tests {
         let a = PairScore { points: 2, epe: 1.0, pck: vec![0.5, 1.0] };
         let b = PairScore { points: 7, epe: 3.0, pck: vec![0.0, 0.5] };
         let s = average_pairs(&[Some(a), None, Some(b)]).unwrap();
-        assert_eq!(s, TrackingScore { pairs: 2, epe: 2.0, pck: vec![0.25, 0.75] });
+        assert_eq!(s, TrackingScore { pairs: 2, points: 9, epe: 2.0, pck: vec![0.25, 0.75] });
         assert_eq!(average_pairs(&[None, None]), None);
     }
 

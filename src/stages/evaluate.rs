@@ -11,9 +11,10 @@
 //! (mPSNR, mSSIM, mLPIPS over the covisibility mask). Every summary value is the mean of
 //! the per-image values.
 //!
-//! With `--model MODEL_DIR` and a scene with ground-truth tracks, the model's 3D tracking
-//! scores (EPE, PCK at 5% and 10% of the bbox diagonal; [`super::evaluate_tracks`]) are
-//! added to the summary.
+//! With `--model MODEL_DIR`, the model's tracking scores are added to the summary
+//! ([`super::evaluate_tracks`]): 3D EPE and PCK at 5% and 10% of the bbox diagonal on a
+//! scene with ground-truth tracks, DyCheck's PCK-T (with the numbers of pairs and
+//! keypoints scored) on a scene with DyCheck keypoints.
 //!
 //! Outputs in `OUT/`: `metrics.parquet` (one row per image, scene camera order),
 //! `summary.json` and `summary.md` (also printed).
@@ -23,7 +24,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context as _;
 use rayon::prelude::*;
 
-use super::evaluate_tracks::TrackingSummary;
+use super::evaluate_tracks::{PckTSummary, TrackingSummary};
 use crate::context::Context;
 use crate::image_io::{self, Image};
 use crate::metrics::lpips::{Lpips, WeightsError};
@@ -111,7 +112,8 @@ pub struct EvaluateParams {
     #[serde(default)]
     pub masks: MaskMode,
     /// Model directory whose tracks are scored against the scene's ground-truth tracks
-    /// (3D EPE and PCK; skipped with a warning when the scene has none).
+    /// (3D EPE and PCK) and DyCheck keypoints (PCK-T); skipped with a warning when the
+    /// scene has neither.
     #[arg(long, value_name = "MODEL_DIR")]
     #[serde(default)]
     pub model: Option<PathBuf>,
@@ -156,7 +158,8 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
     )?;
     let mut summary = summarise(&rows);
     if let Some(model) = &p.model {
-        summary.tracking = super::evaluate_tracks::evaluate_tracks(&scene, model, ctx)?;
+        let scores = super::evaluate_tracks::evaluate_model(&scene, model, ctx)?;
+        (summary.tracking, summary.pck_t) = (scores.tracking, scores.pck_t);
     }
     let json = serde_json::to_string_pretty(&summary).context("serialising the summary")?;
     image_io::write_atomic(&out.join("summary.json"), format!("{json}\n").as_bytes())?;
@@ -338,6 +341,9 @@ pub struct Summary {
     /// 3D tracking scores (`evaluate --model`), when computed.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tracking: Option<TrackingSummary>,
+    /// DyCheck PCK-T (`evaluate --model` on a scene with keypoints), when computed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pck_t: Option<PckTSummary>,
 }
 
 fn group(label: String, rows: &[&MetricRow]) -> Group {
@@ -374,6 +380,7 @@ pub fn summarise(rows: &[MetricRow]) -> Summary {
         masked: rows.iter().any(|r| r.masked),
         groups,
         tracking: None,
+        pck_t: None,
     }
 }
 
@@ -405,6 +412,9 @@ impl Summary {
         }
         if let Some(t) = &self.tracking {
             md.push_str(&t.markdown());
+        }
+        if let Some(k) = &self.pck_t {
+            md.push_str(&k.markdown());
         }
         md
     }

@@ -1,21 +1,28 @@
 //! The tracking part of `usplat4d evaluate --model MODEL_DIR`: 3D end-point error and 3D
 //! PCK of a model's Shape-of-Motion-style track predictions against a scene's ground-truth
-//! tracks (formats-and-protocols.md §3.3).
+//! tracks, and DyCheck's 2D PCK-T against its keypoints (formats-and-protocols.md §1.5,
+//! §3.3). The math is in [`crate::metrics::tracking`].
 //!
-//! Inputs from the scene directory: `tracks_3d.parquet` (`[T][M, 3]` world positions of M
+//! 3D tracks (synthetic scenes): `tracks_3d.parquet` (`[T][M, 3]` world positions of M
 //! surface points), `tracks_2d.parquet` (their visibility in the training camera, `[T][M]`)
 //! and `scene.json` (`bbox_diagonal`, the object's bounding-box diagonal in world units,
 //! written by `synth`). Scores are over all ordered pairs of DyCheck's keyframes
 //! (`keyframes(T, 10)`, or every frame when T < 10), with PCK thresholds at 5% and 10% of
-//! the diagonal; the math is in [`crate::metrics::tracking`]. DyCheck keypoints
-//! (`keypoint/2x/train/*.json`, PCK-T) are not scored here yet.
+//! the diagonal.
+//!
+//! PCK-T (scenes from `import dycheck` with keypoints): the keypoint files that
+//! `scene.json` maps to training frames (`keypoints.frames`), converted to scene pixels at
+//! the import factor ([`crate::datasets::dycheck::read_scene_keypoints`]); every ordered
+//! pair of distinct keyframes, keypoints visible in both, correct within
+//! `0.05·max(W, H)` pixels.
 
 use std::path::Path;
 
 use anyhow::Context as _;
 
 use crate::context::Context;
-use crate::metrics::tracking::{self, GtTracks3d, NUM_KEYFRAMES, PCK_3D_FRACTIONS};
+use crate::datasets::dycheck::{KEYPOINT_DIR, SceneKeypoints, read_scene_keypoints};
+use crate::metrics::tracking::{self, GtKeypoints, GtTracks3d, NUM_KEYFRAMES, PCK_3D_FRACTIONS};
 use crate::model::Model;
 use crate::render::CpuRenderer;
 use crate::scene::Scene;
@@ -25,8 +32,6 @@ use crate::tables::{tracks_2d::Tracks2dReader, tracks_3d::Tracks3dReader};
 pub const TRACKS_3D: &str = "tracks_3d.parquet";
 /// The scene's ground-truth 2D tracks file (visibility in the training camera).
 pub const TRACKS_2D: &str = "tracks_2d.parquet";
-/// DyCheck's keypoint directory as `import dycheck` copies it.
-pub const KEYPOINTS: &str = "keypoint/2x/train";
 
 /// 3D tracking scores of one model on one scene.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -65,6 +70,131 @@ impl TrackingSummary {
             self.pck_10
         )
     }
+}
+
+/// DyCheck PCK-T of one model on one scene.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PckTSummary {
+    /// Model directory label.
+    pub model: String,
+    /// Keypoints per keyframe J.
+    pub keypoints: usize,
+    /// Keyframes (training frame indices) with keypoint files.
+    pub keyframes: Vec<usize>,
+    /// Ordered pairs of distinct keyframes with at least one keypoint visible in both.
+    pub pairs: usize,
+    /// Keypoints scored, summed over those pairs.
+    pub points: usize,
+    /// Correctness threshold `0.05·max(W, H)`, scene pixels (first keyframe's camera).
+    pub threshold_px: f64,
+    /// Mean over pairs of the fraction of correct keypoints.
+    pub pck_t: f64,
+    /// Mean over pairs of the mean end-point error, scene pixels.
+    pub epe_px: f64,
+}
+
+impl PckTSummary {
+    /// The scores as a Markdown section.
+    pub fn markdown(&self) -> String {
+        format!(
+            "\n## PCK-T of {} ({} keypoints, {} keyframes, {} pairs, {} points, threshold \
+             {:.1} px)\n\n| PCK-T | EPE (px) |\n|---|---|\n| {:.3} | {:.2} |\n",
+            self.model,
+            self.keypoints,
+            self.keyframes.len(),
+            self.pairs,
+            self.points,
+            self.threshold_px,
+            self.pck_t,
+            self.epe_px
+        )
+    }
+}
+
+/// What `evaluate --model` scores: 3D tracking and PCK-T, each when the scene has its
+/// ground truth.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ModelScores {
+    /// 3D tracking (scenes with `tracks_3d.parquet`).
+    pub tracking: Option<TrackingSummary>,
+    /// PCK-T (scenes with DyCheck keypoints).
+    pub pck_t: Option<PckTSummary>,
+}
+
+/// Tracking scores of the model in `model_dir` on `scene`: 3D tracking when the scene has
+/// `tracks_3d.parquet`, PCK-T when its `scene.json` records keypoints; a warning and no
+/// scores when it has neither.
+pub fn evaluate_model(
+    scene: &Scene,
+    model_dir: &Path,
+    ctx: &Context,
+) -> anyhow::Result<ModelScores> {
+    let has_tracks = scene.dir.join(TRACKS_3D).is_file();
+    let keypoints = read_scene_keypoints(&scene.dir)?;
+    if !has_tracks && keypoints.is_none() {
+        ctx.warn(format!(
+            "{} has neither {TRACKS_3D} nor DyCheck keypoints ({KEYPOINT_DIR}): no tracking \
+             metrics",
+            scene.dir.display()
+        ));
+        return Ok(ModelScores::default());
+    }
+    let model = Model::load(model_dir)?;
+    let mut scores = ModelScores::default();
+    if has_tracks {
+        scores.tracking = evaluate_tracks(scene, &model, model_dir, ctx)?;
+    }
+    if let Some(k) = keypoints {
+        scores.pck_t = evaluate_pck_t(scene, &model, model_dir, k, ctx)?;
+    }
+    Ok(scores)
+}
+
+/// PCK-T of `model` against the scene's keypoints `k`, or `None` (with a warning) when no
+/// pair of keyframes shares a visible keypoint.
+fn evaluate_pck_t(
+    scene: &Scene,
+    model: &Model,
+    model_dir: &Path,
+    k: SceneKeypoints,
+    ctx: &Context,
+) -> anyhow::Result<Option<PckTSummary>> {
+    let _span = tracing::info_span!("evaluate_pck_t").entered();
+    let train = scene.train_by_frame();
+    for (name, &f) in k.names.iter().zip(&k.frames) {
+        if f >= model.num_frames() || f >= train.len() {
+            anyhow::bail!(
+                "keypoint file {name}.json is at frame {f}, but {} has {} frames and {} has {} \
+                 training frames",
+                Model::trajectories_path(model_dir).display(),
+                model.num_frames(),
+                scene.dir.display(),
+                train.len()
+            );
+        }
+    }
+    let threshold_px = k
+        .frames
+        .first()
+        .map_or(f64::NAN, |&f| tracking::pck_t_threshold(train[f].width, train[f].height));
+    let keypoints = k.pixels.first().map_or(0, Vec::len);
+    let gt = GtKeypoints { frames: k.frames, pixels: k.pixels, visible: k.visible };
+    let score = tracking::pck_t_model(model, scene, &gt, &CpuRenderer)
+        .with_context(|| format!("PCK-T of {} on {}", model_dir.display(), scene.dir.display()))?;
+    let Some(score) = score else {
+        ctx.warn("no two keyframes share a visible keypoint: no PCK-T");
+        return Ok(None);
+    };
+    Ok(Some(PckTSummary {
+        model: super::evaluate::dir_label(model_dir),
+        keypoints,
+        keyframes: gt.frames,
+        pairs: score.pairs,
+        points: score.points,
+        threshold_px,
+        pck_t: score.pck[0],
+        epe_px: score.epe,
+    }))
 }
 
 /// The `bbox_diagonal` key of `SCENE/scene.json`.
@@ -108,28 +238,17 @@ fn read_ground_truth(scene_dir: &Path) -> anyhow::Result<GtTracks3d> {
     Ok(gt)
 }
 
-/// 3D tracking scores of the model in `model_dir` on `scene`, or `None` (with a warning)
-/// when the scene has no `tracks_3d.parquet`.
-pub fn evaluate_tracks(
+/// 3D tracking scores of `model` (from `model_dir`) on `scene`, which has
+/// `tracks_3d.parquet`; `None` (with a warning) when no track is visible at a keyframe.
+fn evaluate_tracks(
     scene: &Scene,
+    model: &Model,
     model_dir: &Path,
     ctx: &Context,
 ) -> anyhow::Result<Option<TrackingSummary>> {
-    if !scene.dir.join(TRACKS_3D).is_file() {
-        if scene.dir.join(KEYPOINTS).is_dir() {
-            ctx.warn(format!(
-                "{}: DyCheck keypoints (PCK-T) are not scored yet; no tracking metrics",
-                scene.dir.join(KEYPOINTS).display()
-            ));
-        } else {
-            ctx.warn(format!("{} has no {TRACKS_3D}: no tracking metrics", scene.dir.display()));
-        }
-        return Ok(None);
-    }
     let _span = tracing::info_span!("evaluate_tracks").entered();
     let gt = read_ground_truth(&scene.dir)?;
     let diag = bbox_diagonal(&scene.dir)?;
-    let model = Model::load(model_dir)?;
     let frames = gt.positions.len();
     if model.num_frames() != frames {
         anyhow::bail!(
@@ -140,7 +259,7 @@ pub fn evaluate_tracks(
         );
     }
     let keys = tracking::keyframes(frames, NUM_KEYFRAMES.min(frames));
-    let score = tracking::track_3d(&model, scene, &gt, &keys, &CpuRenderer, diag)
+    let score = tracking::track_3d(model, scene, &gt, &keys, &CpuRenderer, diag)
         .with_context(|| format!("tracking {} on {}", model_dir.display(), scene.dir.display()))?;
     let Some(score) = score else {
         ctx.warn("no ground-truth track is visible at any keyframe: no tracking metrics");
@@ -190,5 +309,25 @@ mod tests {
         let md = s.markdown();
         assert!(md.contains("| 0.0100 | 0.500 | 1.000 |"), "{md}");
         assert!(md.contains("4 tracks, 2 keyframes, 4 pairs"), "{md}");
+    }
+
+    #[test]
+    fn pck_t_markdown_names_pairs_and_points() {
+        let s = PckTSummary {
+            model: "m".into(),
+            keypoints: 16,
+            keyframes: (0..10).collect(),
+            pairs: 90,
+            points: 1400,
+            threshold_px: 24.0,
+            pck_t: 0.9875,
+            epe_px: 1.234,
+        };
+        let md = s.markdown();
+        assert!(md.contains("| PCK-T | EPE (px) |\n|---|---|\n| 0.988 | 1.23 |"), "{md}");
+        assert!(
+            md.contains("(16 keypoints, 10 keyframes, 90 pairs, 1400 points, threshold 24.0 px)"),
+            "{md}"
+        );
     }
 }

@@ -13,20 +13,24 @@
 //! A missing `depth/<factor>x` or `covisible/2x/val` directory is a warning and leaves the
 //! depth or mask column null; a missing file inside a present directory is an error.
 //! `keypoint/2x/train/*.json` (DyCheck's PCK-T annotations: `[J, 3]` rows `[x, y, visible]`
-//! in 2x integer pixel indices, so our 2x coordinates are `x + 0.5`, `y + 0.5`) and
-//! `skeleton.json` are copied unchanged to `keypoint/2x/train/`. `scene.json` records the
-//! source, factor, world frame, fps, near/far and DyCheck's `scene.json` / `extra.json`.
+//! in 2x integer pixel indices; see the `keypoints` module) are checked (every file parses, names
+//! a training image, and has the same J) and copied unchanged with `skeleton.json` to
+//! `keypoint/2x/train/`. `scene.json` records the source, factor, world frame, fps,
+//! near/far, DyCheck's `scene.json` / `extra.json`, and `keypoints`: the directory and the
+//! frame of each keypoint file (`{"dir", "frames": {frame_name: frame}}`).
 //! `cameras.parquet` is written last.
 //!
 //! `--cameras-only` writes `cameras.parquet` and `scene.json` alone (for sequences shipped
 //! without images, like the paper-windmill camera files): image paths are set, depth and
 //! mask paths are null.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde_json::json;
 
+use super::keypoints::{self, KEYPOINT_DIR};
 use super::sequence::{SceneInfo, Sequence};
 use super::{Error, Result, World};
 use crate::context::Context;
@@ -99,7 +103,7 @@ pub fn import(p: &ImportDycheckParams, ctx: &Context) -> Result<Scene> {
             World::Dycheck => info.map_or(1.0, |i| i.scale),
         };
         copy_images(p, &seq, &mut cameras, scale, ctx)?;
-        keypoints = copy_keypoints(&p.data, &p.out)?;
+        keypoints = copy_keypoints(&seq, &p.out)?;
     }
     let (near, far) = match (info, p.world) {
         (Some(i), World::Dycheck) => (Some(i.near), Some(i.far)),
@@ -246,29 +250,49 @@ fn to_rgba(img: Image) -> Image {
     Image { channels: 4, data, ..img }
 }
 
-/// Copy `keypoint/2x/train/*.json` unchanged; returns the relative directory when present.
-fn copy_keypoints(data: &Path, out: &Path) -> Result<Option<String>> {
-    const REL: &str = "keypoint/2x/train";
-    let dir = data.join(REL);
+/// Copy `keypoint/2x/train/*.json` (and `skeleton.json`) unchanged after checking each
+/// file and resolving its name to a training image of `seq`; returns the `scene.json`
+/// entry `{"dir", "frames": {frame_name: frame}}` when the directory exists.
+fn copy_keypoints(seq: &Sequence, out: &Path) -> Result<Option<serde_json::Value>> {
+    let dir = seq.dir.join(KEYPOINT_DIR);
     if !dir.is_dir() {
         return Ok(None);
     }
-    let io = |path: &Path| {
-        let path = path.to_path_buf();
-        move |error| Error::Io { path, error }
-    };
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .map_err(io(&dir))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "json"))
+    let frame_of: HashMap<&str, u32> = seq
+        .entries
+        .iter()
+        .filter(|e| e.split == Split::Train)
+        .map(|e| (e.name.as_str(), e.frame))
         .collect();
-    files.sort();
+    let mut frames = serde_json::Map::new();
+    let mut first: Option<(PathBuf, usize)> = None;
+    let files = keypoints::list_files(&dir)?;
     for f in &files {
-        let bytes = std::fs::read(f).map_err(io(f))?;
-        let name = f.file_name().unwrap_or_default();
-        image_io::write_atomic(&out.join(REL).join(name), &bytes)?;
+        let stem = f.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let frame = *frame_of.get(stem.as_str()).ok_or_else(|| Error::File {
+            path: f.clone(),
+            msg: format!("'{stem}' is not a training image of splits/train.json"),
+        })?;
+        let j = keypoints::read_keypoints(f)?.len();
+        match &first {
+            Some((p, n)) if *n != j => {
+                return Err(Error::File {
+                    path: f.clone(),
+                    msg: format!("has {j} keypoints but {} has {n}", p.display()),
+                });
+            }
+            Some(_) => {}
+            None => first = Some((f.clone(), j)),
+        }
+        frames.insert(stem, json!(frame));
     }
-    Ok(Some(REL.to_string()))
+    let skeleton = dir.join(keypoints::SKELETON);
+    for f in files.iter().chain(skeleton.is_file().then_some(&skeleton)) {
+        let bytes = std::fs::read(f).map_err(|error| Error::Io { path: f.clone(), error })?;
+        let name = f.file_name().unwrap_or_default();
+        image_io::write_atomic(&out.join(KEYPOINT_DIR).join(name), &bytes)?;
+    }
+    Ok(Some(json!({"dir": KEYPOINT_DIR, "frames": frames})))
 }
 
 #[cfg(test)]

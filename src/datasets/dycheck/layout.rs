@@ -15,8 +15,10 @@
 //! `splits/{train,val}.json`, `dataset.json`, `metadata.json`, `scene.json`, `extra.json`.
 //! Camera names must be DyCheck camera ids (non-negative integers); the training images
 //! must be one camera with frames 0..T-1, each with depth; evaluation images need a mask.
-//! Training masks and evaluation depth are not written (DyCheck has neither), nor are
-//! `points.npy` and keypoints.
+//! Training masks and evaluation depth are not written (DyCheck has neither), nor is
+//! `points.npy`. When the scene has ground-truth `tracks_2d.parquet` (a `synth` scene),
+//! `keypoint/2x/train/` gets PCK-T keypoints picked from those tracks on DyCheck's 10
+//! keyframes, with a `skeleton.json` (see `write_synthetic` in the `keypoints` module).
 //!
 //! `scene.json`: `center` = middle of the axis-aligned box around every valid training
 //! depth pixel unprojected (pinhole, distortion ignored) and every camera centre; `scale` =
@@ -34,11 +36,15 @@ use rayon::prelude::*;
 use serde_json::json;
 
 use super::camera_json::DycheckCamera;
+use super::keypoints;
 use super::sequence::SplitFile;
 use super::{Error, Result};
 use crate::context::Context;
 use crate::image_io::{self, Image};
 use crate::scene::{Camera, Scene, Split};
+
+/// The scene's ground-truth 2D tracks (written by `synth`), the source of the keypoints.
+const TRACKS_2D: &str = "tracks_2d.parquet";
 
 /// DyCheck's factor of the scene's images.
 const FACTOR: u32 = 2;
@@ -85,6 +91,7 @@ impl Extent {
 pub fn write_layout(scene: &Scene, out: &Path, ctx: &Context) -> Result<()> {
     let _span = tracing::info_span!("dycheck_layout").entered();
     let jobs = plan(scene)?;
+    let train_len = scene.train_by_frame().len();
     let bar = ctx.progress(jobs.len() as u64, "dycheck layout");
     let results: Vec<Result<Option<Extent>>> = jobs
         .par_iter()
@@ -111,7 +118,13 @@ pub fn write_layout(scene: &Scene, out: &Path, ctx: &Context) -> Result<()> {
         extent.lo = extent.lo.min(p);
         extent.hi = extent.hi.max(p);
     }
-    write_metadata(scene, out, &jobs, extent)
+    write_metadata(scene, out, &jobs, extent)?;
+    let tracks = scene.dir.join(TRACKS_2D);
+    if tracks.is_file() {
+        let names: Vec<String> = jobs[..train_len].iter().map(|j| j.name.clone()).collect();
+        keypoints::write_synthetic(&tracks, out, &names)?;
+    }
+    Ok(())
 }
 
 /// Check the scene and list its images: training by frame, then evaluation in table order.

@@ -16,7 +16,7 @@
 //!   index (i, j) has continuous coordinate (i + 0.5, j + 0.5) and K applies to those
 //!   coordinates. That is our convention too, so the principal point is copied unchanged;
 //!   no ±0.5 shift is applied anywhere. (The stored DyCheck keypoints are integer pixel
-//!   indices: add 0.5 to get our coordinates.)
+//!   indices at 2x: our coordinates at factor F are `(x + 0.5)·2/F`, [`to_scene_pixel`].)
 //! - Intrinsics at downscale `factor` follow DyCheck's `rescale_image_domain(1/factor)`:
 //!   focal length and principal point times `1/factor`, image size
 //!   `round(size · (1/factor))` with Python's round-half-to-even.
@@ -30,6 +30,7 @@
 mod camera_json;
 mod import;
 mod json;
+mod keypoints;
 mod layout;
 mod sequence;
 
@@ -37,6 +38,10 @@ use std::path::PathBuf;
 
 pub use camera_json::DycheckCamera;
 pub use import::{ImportDycheckParams, run_import};
+pub use keypoints::{
+    KEYPOINT_DIR, Keypoint, SceneKeypoints, read_keypoints, read_scene_keypoints,
+    to_keypoint_index, to_scene_pixel,
+};
 pub use layout::write_layout;
 pub use sequence::{Entry, Sequence, read_camera_path};
 
