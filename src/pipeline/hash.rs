@@ -74,6 +74,7 @@ pub struct Hasher {
     cache_file: Option<PathBuf>,
     stamps: BTreeMap<String, Stamp>,
     dirty: bool,
+    tool: Option<String>,
 }
 
 fn now_ns() -> u128 {
@@ -103,7 +104,7 @@ impl Hasher {
             .ok()
             .and_then(|b| serde_json::from_slice(&b).ok())
             .unwrap_or_default();
-        Hasher { cache_file: Some(cache_file), stamps, dirty: false }
+        Hasher { cache_file: Some(cache_file), stamps, dirty: false, tool: None }
     }
 
     /// Write the stat cache back if it changed, forgetting files that no longer exist.
@@ -116,6 +117,21 @@ impl Hasher {
             self.dirty = false;
         }
         Ok(())
+    }
+
+    /// Identity of the running tool: its version and the content hash of its executable
+    /// (`0.1.0+1a2b3c4d5e6f7a8b`), so that a rebuilt binary re-runs stages even when the
+    /// version number did not change. The executable's hash goes through the stat cache.
+    pub fn tool_id(&mut self) -> Result<String, Error> {
+        if let Some(t) = &self.tool {
+            return Ok(t.clone());
+        }
+        let exe = std::env::current_exe()
+            .map_err(|e| Error::Io { path: "(the running executable)".into(), source: e })?;
+        let hash = self.hash(&exe)?.map(|t| t.hash).unwrap_or_default();
+        let id = format!("{}+{}", crate::VERSION, &hash[..hash.len().min(16)]);
+        self.tool = Some(id.clone());
+        Ok(id)
     }
 
     /// Hash `path` (file or directory); `None` when it does not exist.

@@ -272,7 +272,7 @@ impl<'a> Runner<'a> {
         let mut entry = LockEntry {
             key: key.clone(),
             cmd: stage.cmd.clone(),
-            tool_version: crate::VERSION.to_string(),
+            tool_version: cur.tool.clone(),
             params: stage.params.clone(),
             deps,
             outs: BTreeMap::new(),

@@ -16,10 +16,13 @@ pub enum Reason {
     NeverRun,
     /// `--force`.
     Forced,
-    /// The tool version differs from the one that ran it.
+    /// The tool (version or executable, see [`Hasher::tool_id`]) differs from the one
+    /// that ran it.
     ToolVersion {
-        /// Recorded version.
+        /// Recorded tool id.
         from: String,
+        /// The running tool's id.
+        to: String,
     },
     /// A parameter value changed.
     ParamChanged {
@@ -88,9 +91,7 @@ impl fmt::Display for Reason {
         match self {
             Reason::NeverRun => write!(f, "never run"),
             Reason::Forced => write!(f, "forced"),
-            Reason::ToolVersion { from } => {
-                write!(f, "tool version changed {from} -> {}", crate::VERSION)
-            }
+            Reason::ToolVersion { from, to } => write!(f, "tool changed {from} -> {to}"),
             Reason::ParamChanged { name, from, to } => {
                 write!(f, "param {name} changed {from} -> {to}")
             }
@@ -124,12 +125,14 @@ pub struct Current {
     pub deps: BTreeMap<String, Option<String>>,
     /// Out path → tree (`None` when missing).
     pub outs: BTreeMap<String, Option<Tree>>,
+    /// [`Hasher::tool_id`] of the running tool.
+    pub tool: String,
 }
 
 /// blake3 over everything that determines a stage's result: its command after interpolation,
 /// the tool version, its parameters, its output paths and the content hashes of its deps.
 /// The stage name is not part of it, so a renamed stage can still restore from the run cache.
-pub fn stage_key(stage: &Stage, deps: &BTreeMap<String, String>) -> String {
+pub fn stage_key(stage: &Stage, tool: &str, deps: &BTreeMap<String, String>) -> String {
     let mut h = blake3::Hasher::new();
     let mut field = |tag: &str, parts: &[&str]| {
         h.update(tag.as_bytes());
@@ -141,7 +144,7 @@ pub fn stage_key(stage: &Stage, deps: &BTreeMap<String, String>) -> String {
     };
     field("usplat4d-stage-key", &["1"]);
     field("cmd", &[&stage.cmd]);
-    field("version", &[crate::VERSION]);
+    field("version", &[tool]);
     for (k, v) in &stage.params {
         field("param", &[k, v]);
     }
@@ -168,8 +171,9 @@ pub fn current(p: &Pipeline, stage: &Stage, hasher: &mut Hasher) -> Result<Curre
     }
     let complete: Option<BTreeMap<String, String>> =
         deps.iter().map(|(k, v)| v.clone().map(|v| (k.clone(), v))).collect();
-    let key = complete.map(|d| stage_key(stage, &d));
-    Ok(Current { key, deps, outs })
+    let tool = hasher.tool_id()?;
+    let key = complete.map(|d| stage_key(stage, &tool, &d));
+    Ok(Current { key, deps, outs, tool })
 }
 
 /// Why `stage` in state `cur` does not match its lock `entry`; empty when up to date.
@@ -186,8 +190,8 @@ pub fn explain(stage: &Stage, entry: Option<&LockEntry>, cur: &Current) -> Vec<R
         r.extend(missing);
         return r;
     };
-    if e.tool_version != crate::VERSION {
-        r.push(Reason::ToolVersion { from: e.tool_version.clone() });
+    if e.tool_version != cur.tool {
+        r.push(Reason::ToolVersion { from: e.tool_version.clone(), to: cur.tool.clone() });
     }
     for (name, value) in &stage.params {
         match e.params.get(name) {

@@ -394,7 +394,8 @@ fn the_lock_records_params_and_a_dep_edit_is_reported() {
         lock.stages["hello"].params,
         BTreeMap::from([("greeting".to_string(), "hello".to_string())])
     );
-    assert_eq!(lock.stages["hello"].tool_version, crate::VERSION);
+    let tool = &lock.stages["hello"].tool_version;
+    assert!(tool.starts_with(&format!("{}+", crate::VERSION)) && tool.len() > 6, "{tool}");
     std::fs::write(f.dir.path().join("input.txt"), "\nthere\n").unwrap();
     assert_eq!(
         f.status(&[])[1..3],
@@ -402,4 +403,21 @@ fn the_lock_records_params_and_a_dep_edit_is_reported() {
     );
     let (_, n) = f.run(&[]);
     assert_eq!(n, 4);
+}
+
+#[test]
+fn a_rebuilt_tool_reruns_its_stages() {
+    let mut f = Fixture::new(PIPE);
+    f.run(&[]);
+    let path = f.dir.path().join("p.lock");
+    let mut lock = lock::Lock::load(&path).unwrap();
+    let now = lock.stages["hello"].tool_version.clone();
+    let mut entry = lock.stages["hello"].clone();
+    entry.tool_version = format!("{}+0000000000000000", crate::VERSION);
+    lock.record("hello", entry).unwrap();
+    let status = f.status(&[]).join("\n");
+    let expected = format!("tool changed {}+0000000000000000 -> {now}", crate::VERSION);
+    assert!(status.contains(&expected), "{status}");
+    let (_, runs) = f.run(&[]);
+    assert!(runs > 0, "the stage ran again");
 }
