@@ -413,8 +413,7 @@ impl KeynodeParams {
             },
             nonkey_cap: self.nonkey_cap.unwrap_or(d.nonkey_cap),
             nonkey_min_contrib: match self.nonkey_min_contrib {
-                Some(m) if m == 0.0 => None,
-                Some(m) => Some(m),
+                Some(m) => (m > 0.0).then_some(m),
                 None => d.nonkey_min_contrib,
             },
             unselected_nonkeys: self.unselected_nonkeys.unwrap_or(d.unselected_nonkeys),
