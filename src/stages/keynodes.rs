@@ -65,6 +65,8 @@ use crate::tables::key_nodes::{KeyNodes, Role};
 /// Rungs of the `auto` voxel ladder: edges diag_t·2^(r − 11), r = 0..11 (see the module doc).
 pub const LADDER_RUNGS: usize = 12;
 
+/// Random stream of the per-run voxel-pick priorities of `auto`.
+const STREAM_PRIORITY: u64 = u64::MAX - 3;
 /// Random stream of the top-up from the next finer rung (frame streams are 0..T-1).
 const STREAM_TOP_UP: u64 = u64::MAX - 2;
 /// Random stream of the budget cap of the coarsest rung.
@@ -695,9 +697,12 @@ fn frame_candidates(
     }
     .max(f64::MIN_POSITIVE);
     // True when i beats j as its voxel's pick (a total order, so picks nest over rungs).
+    // `auto` draws the random priorities once per run, a fixed edge once per frame.
+    let stream = if s.voxel_size == VoxelSize::Auto { STREAM_PRIORITY } else { t };
     let better = |i: usize, j: usize| match s.voxel_pick {
         VoxelPick::Random => {
-            (rank_key(s.seed, t, ids[i] as u64), i) < (rank_key(s.seed, t, ids[j] as u64), j)
+            (rank_key(s.seed, stream, ids[i] as u64), i)
+                < (rank_key(s.seed, stream, ids[j] as u64), j)
         }
         VoxelPick::LowestContribution => u[i].total_cmp(&u[j]).then(j.cmp(&i)).is_gt(),
     };
