@@ -184,7 +184,7 @@ pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
     for &profile in &p.profiles {
         let mut ks = KeynodeSettings::defaults(profile);
         if let Some(v) = p.voxel_size {
-            ks.voxel_size = v;
+            ks.voxel_size = keynodes::VoxelSize::Fixed(v);
         }
         let mut es = EdgeSettings::defaults(profile);
         if let Some(f) = p.metric_form {
@@ -224,7 +224,7 @@ fn check_sample(
     count: usize,
 ) -> (usize, usize) {
     let nt = tracks.num_frames;
-    let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
+    let key_rows = keys.rows(crate::tables::key_nodes::Role::Key);
     let mats: Vec<glam::Mat3> = if s.needs_rotations() {
         rotations.iter().map(|r| s.metric_form.transform(s.r_xyz, *r)).collect()
     } else {
@@ -247,7 +247,7 @@ fn check_sample(
         }
     }
     let (mut checked, mut ok) = (0, 0);
-    for i in (0..tracks.len()).filter(|&i| !keys.is_key[i]).take(count) {
+    for i in keys.rows(crate::tables::key_nodes::Role::Nonkey).into_iter().take(count) {
         let got = first_dst.get(&tracks.ids[i]).cloned().unwrap_or_default();
         let want: Vec<u32> = if paper {
             let q: Vec<[f32; 3]> = (0..nt).map(|t| apply(&mats[t], tracks.pos(i, t))).collect();

@@ -19,6 +19,9 @@
 //! `inverse` such a frame adds ≈ 0. Then i is connected to E_j ∪ {j}.
 //! Release: the 5 keys of lowest max_{t: key confident} ‖p_u(t) − p_k(t)‖.
 //!
+//! *Left-out non-keys.* Gaussians whose `key_nodes` role is `unlinked` or `culled` (the
+//! release's non-key cap and minimum contribution, profile rows 33-35) get no edges.
+//!
 //! *Weights*, normalised over the edges leaving each Gaussian: key edges `uniform` (the
 //! release's initial learned weights, 1/k) or `rigidity` (our choice for the paper's
 //! unspecified w_ij: exp(−β·cv²) with cv the coefficient of variation of the pair's
@@ -39,7 +42,7 @@ use super::graph::search::{self, KeyFrames};
 use super::graph::{MetricForm, Profile, Tracks, apply};
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
-use crate::tables::key_nodes::KeyNodes;
+use crate::tables::key_nodes::{KeyNodes, Role};
 
 /// How key → key neighbours are chosen (profile row 26; ablation (b)).
 #[derive(
@@ -326,8 +329,9 @@ pub fn build(
         let iso = s.metric_form.transform(s.r_xyz, DMat3::IDENTITY);
         vec![iso; nt]
     };
-    let key_rows: Vec<usize> = (0..n).filter(|&i| keys.is_key[i]).collect();
-    let nonkey_rows: Vec<usize> = (0..n).filter(|&i| !keys.is_key[i]).collect();
+    let key_rows = keys.rows(Role::Key);
+    // unlinked and culled non-keys get no edges
+    let nonkey_rows = keys.rows(Role::Nonkey);
     let u_mask = 1.0 / s.contrib_threshold;
     let world = key_frames(
         tracks,
@@ -581,7 +585,8 @@ mod tests {
     fn setup(profile: Profile) -> (Tracks, Vec<DMat3>, KeyNodes) {
         let (tracks, rotations, _) = synthetic_tracks(1500, 16, 3, 9);
         let mut ks = KeynodeSettings::defaults(profile);
-        ks.voxel_size = crate::stages::graph::Amount::Value(0.4);
+        ks.voxel_size =
+            crate::stages::keynodes::VoxelSize::Fixed(crate::stages::graph::Amount::Value(0.4));
         ks.candidates_per_frame = crate::stages::graph::Amount::Value(300.0);
         ks.spt_u_max = f32::INFINITY;
         let keys = select(&tracks, &ks);
@@ -618,7 +623,7 @@ mod tests {
             let s = EdgeSettings { metric_form: form, ..EdgeSettings::defaults(Profile::Paper) };
             let e = build(&tracks, &keys, &rotations, &s).unwrap();
             let nt = tracks.num_frames;
-            let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
+            let key_rows = keys.rows(Role::Key);
             let mats: Vec<Mat3> = rotations.iter().map(|r| form.transform(s.r_xyz, *r)).collect();
             let kf = key_frames(
                 &tracks,
@@ -626,7 +631,7 @@ mod tests {
                 |t, p| apply(&mats[t], p),
                 |tr, i, t| tr.reliable(i, t),
             );
-            for nonkey in (0..tracks.len()).filter(|&i| !keys.is_key[i]).step_by(97).take(8) {
+            for nonkey in keys.rows(Role::Nonkey).into_iter().step_by(97).take(8) {
                 let q: Vec<[f32; 3]> =
                     (0..nt).map(|t| apply(&mats[t], tracks.pos(nonkey, t))).collect();
                 let u: Vec<f32> = (0..nt).map(|t| tracks.u(nonkey, t)).collect();
@@ -658,14 +663,14 @@ mod tests {
         let s = EdgeSettings { contrib_threshold: 1.0, ..EdgeSettings::defaults(Profile::Release) };
         let e = build(&tracks, &keys, &rotations, &s).unwrap();
         let nt = tracks.num_frames;
-        let key_rows: Vec<usize> = (0..tracks.len()).filter(|&i| keys.is_key[i]).collect();
+        let key_rows = keys.rows(Role::Key);
         let kf = key_frames(
             &tracks,
             &key_rows,
             |_, p| p,
             |tr, i, t| tr.reliable(i, t) && tr.u(i, t) < 1.0,
         );
-        for nonkey in (0..tracks.len()).filter(|&i| !keys.is_key[i]).take(20) {
+        for nonkey in keys.rows(Role::Nonkey).into_iter().take(20) {
             let p: Vec<[f32; 3]> = (0..nt).map(|t| tracks.pos(nonkey, t)).collect();
             let want: Vec<u32> = knn_max_brute(&kf, &p, 5)
                 .iter()
