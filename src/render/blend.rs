@@ -56,8 +56,7 @@ pub fn exp_neg(x: f32) -> f32 {
     let t = x * std::f32::consts::LOG2_E + ROUND;
     let n = t - ROUND;
     let r = x - n * 0.693_359_4 - n * -2.121_944_4e-4;
-    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2)
-        * r
+    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
         + 1.666_666_5e-1)
         * r
         + 5.000_000_1e-1;
@@ -187,6 +186,19 @@ pub fn for_each_row(
     y0: u32,
     x1: u32,
     y1: u32,
+    row: impl FnMut(u32, u32, u32),
+) {
+    for_each_live_row(g, (x0, y0, x1, y1), |_| true, row);
+}
+
+/// [`for_each_row`] over the rectangle `(x0, y0, x1, y1)` that skips, before any span
+/// arithmetic, the rows `y` where `live(y)` is false (e.g. rows whose pixels have all
+/// terminated).
+#[inline]
+pub fn for_each_live_row(
+    g: &Splat2d,
+    (x0, y0, x1, y1): (u32, u32, u32, u32),
+    live: impl Fn(u32) -> bool,
     mut row: impl FnMut(u32, u32, u32),
 ) {
     let [mx, my] = g.mean2d;
@@ -196,6 +208,9 @@ pub fn for_each_row(
     let ya = ((my - ext_y - 0.5).floor().max(y0 as f32)) as u32;
     let yb = ((my + ext_y + 0.5).ceil().min(y1 as f32)).max(ya as f32) as u32;
     for y in ya..yb {
+        if !live(y) {
+            continue;
+        }
         let dy = my - (y as f32 + 0.5);
         // σ(dx) = ½a dx² + b dy dx + ½c dy² ≤ p, dx = mx − px.
         let disc = b * b * dy * dy - a * (c * dy * dy - 2.0 * p);

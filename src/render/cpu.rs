@@ -18,9 +18,9 @@ use super::project::{
     CameraConsts, Splat2d, Splat2dGrad, normalize_quat, project, project_vjp, quat_to_rotmat,
 };
 use super::{
-    ColorSource, Convergence, ConvergenceTest, CpuRenderer, DifferentiableRenderer, Error, ImageGrads, RasterPass,
-    RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads,
-    SplatInputs, sh,
+    ColorSource, Convergence, ConvergenceTest, CpuRenderer, DifferentiableRenderer, Error,
+    ImageGrads, RasterPass, RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer,
+    ShFrame, SplatGrads, SplatInputs, sh,
 };
 
 /// Forward state the CPU backward pass needs (one render's worth).

@@ -14,7 +14,9 @@
 
 use rayon::prelude::*;
 
-use super::blend::{Cutoff, SPAN, for_each_row, span_alpha};
+use std::cell::Cell;
+
+use super::blend::{Cutoff, SPAN, for_each_live_row, span_alpha};
 use super::constants::{T_THRESHOLD, TILE_SIZE};
 use super::isect::{Intersections, TileGrid};
 use super::project::Splat2d;
@@ -86,11 +88,11 @@ impl RasterInputs<'_> {
         let ids = &self.isect.gaussian[self.offsets[t]..self.offsets[t + 1]];
         let c = self.num_channels;
         list.splats.clear();
+        list.splats.extend(ids.iter().map(|&g| self.splats[g as usize]));
         list.channels.clear();
+        list.channels.reserve(ids.len() * c);
         for &g in ids {
-            let g = g as usize;
-            list.splats.push(self.splats[g]);
-            list.channels.extend_from_slice(&self.channels[g * c..(g + 1) * c]);
+            list.channels.extend_from_slice(&self.channels[g as usize * c..(g as usize + 1) * c]);
         }
     }
 
@@ -124,13 +126,6 @@ struct Strip<'a> {
     stats: &'a mut [PairStats],
 }
 
-/// Per-worker buffers reused across tiles.
-#[derive(Default)]
-struct Scratch {
-    list: TileList,
-    done: Vec<u32>,
-}
-
 /// Blend one tile into its strip. Gaussian-major: each Gaussian, front to back, updates the
 /// pixels of its footprint ([`for_each_row`]); every pixel still sees its Gaussians in list
 /// order and does exactly the arithmetic of the per-pixel loop of the GPU kernel, so the
@@ -141,9 +136,9 @@ fn rasterize_tile<const C: usize>(
     inp: &RasterInputs,
     t: usize,
     strip: &mut Strip,
-    sc: &mut Scratch,
+    list: &mut TileList,
 ) {
-    inp.gather_into(t, &mut sc.list);
+    inp.gather_into(t, list);
     let c = if C == 0 { inp.num_channels } else { C };
     let w = inp.grid.width as usize;
     let (x0, y0, x1, y1) = inp.tile_pixels(t);
@@ -151,22 +146,22 @@ fn rasterize_tile<const C: usize>(
     let strip_start = inp.offsets[t - t % inp.grid.tiles_x as usize];
     let stats = &mut strip.stats[inp.offsets[t] - strip_start..inp.offsets[t + 1] - strip_start];
     // Per tile row, bit i set when pixel x0 + i has terminated (tiles are ≤ 16 wide).
-    sc.done.clear();
-    sc.done.resize((y1 - y0) as usize, 0);
-    let done = &mut sc.done;
+    let done: [Cell<u32>; TILE_SIZE as usize] = Default::default();
+    let full = (1u32 << (x1 - x0)) - 1;
     let mut n_done = 0;
     let mut alphas = [0.0f32; SPAN];
-    for (j, g) in sc.list.splats.iter().enumerate() {
+    for (j, g) in list.splats.iter().enumerate() {
         if n_done == n_px {
             break;
         }
-        let ch = &sc.list.channels[j * c..(j + 1) * c];
+        let ch = &list.channels[j * c..(j + 1) * c];
         let mut s = PairStats::default();
-        for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
+        let live = |y: u32| done[(y - y0) as usize].get() != full;
+        for_each_live_row(g, (x0, y0, x1, y1), live, |y, xa, xb| {
             let row = (y - y0) as usize;
             // Narrow the span to its pixels that are still blending; skip it when none.
             let (lo, hi) = (xa - x0, xb - x0);
-            let active = (((1u32 << (hi - lo)) - 1) << lo) & !done[row];
+            let active = (((1u32 << (hi - lo)) - 1) << lo) & !done[row].get();
             if active == 0 {
                 return;
             }
@@ -183,7 +178,7 @@ fn rasterize_tile<const C: usize>(
                 let t = strip.final_t[k];
                 let next_t = t * (1.0 - alpha);
                 if next_t <= T_THRESHOLD {
-                    done[row] |= bit;
+                    done[row].set(done[row].get() | bit);
                     n_done += 1;
                     continue;
                 }
@@ -221,14 +216,14 @@ pub fn rasterize_fwd(inp: &RasterInputs) -> FwdImages {
         .zip(img.last_contributor.par_chunks_mut(rows))
         .zip(strips)
         .enumerate()
-        .for_each_init(Scratch::default, |sc, (s, (((channels, final_t), last), stats))| {
+        .for_each_init(TileList::default, |list, (s, (((channels, final_t), last), stats))| {
             let mut strip = Strip { channels, final_t, last, stats };
             let tx = inp.grid.tiles_x as usize;
             for t in s * tx..(s + 1) * tx {
                 if c == 4 {
-                    rasterize_tile::<4>(inp, t, &mut strip, sc);
+                    rasterize_tile::<4>(inp, t, &mut strip, list);
                 } else {
-                    rasterize_tile::<0>(inp, t, &mut strip, sc);
+                    rasterize_tile::<0>(inp, t, &mut strip, list);
                 }
             }
         });
@@ -273,22 +268,25 @@ pub fn failing_pairs(
             let mut alphas = [0.0f32; SPAN];
             for (j, &g) in ids.iter().enumerate() {
                 let g = &inp.splats[g as usize];
-                let mut hit = false;
-                for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
+                let hit = Cell::new(false);
+                let live = |y: u32| !hit.get() && failing[(y - y0) as usize] != 0;
+                for_each_live_row(g, (x0, y0, x1, y1), live, |y, xa, xb| {
                     let (lo, hi) = (xa - x0, xb - x0);
                     let active = (((1u32 << (hi - lo)) - 1) << lo) & failing[(y - y0) as usize];
-                    if hit || active == 0 {
+                    if active == 0 {
                         return;
                     }
                     let (lo, hi) = (active.trailing_zeros(), 32 - active.leading_zeros());
                     let n = (hi - lo) as usize;
                     span_alpha(g, x0 + lo, n, y, inp.alpha_max, inp.cutoff, &mut alphas);
                     let base = y as usize * w + (x0 + lo) as usize;
-                    hit = alphas[..n].iter().enumerate().any(|(i, &a)| {
-                        a > 0.0 && active & (1 << (lo as usize + i)) != 0 && j < last_of(base + i) as usize
-                    });
+                    hit.set(alphas[..n].iter().enumerate().any(|(i, &a)| {
+                        a > 0.0
+                            && active & (1 << (lo as usize + i)) != 0
+                            && j < last_of(base + i) as usize
+                    }));
                 });
-                out[j] = hit;
+                out[j] = hit.get();
             }
         }
     });

@@ -464,9 +464,8 @@ fn convergence_from_the_saved_render_matches_a_per_pixel_walk() {
         }
     }
     assert_eq!(all, want);
-    let count = |ok: bool| {
-        want.iter().zip(&out.aux.n_pixels).filter(|(o, n)| **o == ok && **n > 0).count()
-    };
+    let count =
+        |ok: bool| want.iter().zip(&out.aux.n_pixels).filter(|(o, n)| **o == ok && **n > 0).count();
     let (failing, passing) = (count(false), count(true));
     assert!(failing > 5 && passing > 5, "{failing} failing, {passing} passing: weak test");
     let conv = CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass).unwrap();

@@ -21,7 +21,9 @@ use super::uncertainty::{
 use crate::context::Context;
 use crate::render::bench::{cpu_ms, median_ms};
 use crate::render::synthetic::{camera, cloud};
-use crate::render::{ColorSource, CpuRenderer, RenderCamera, RenderSettings, Renderer, SplatInputs};
+use crate::render::{
+    ColorSource, CpuRenderer, RenderCamera, RenderSettings, Renderer, SplatInputs,
+};
 
 /// Parameters of `usplat4d bench uncertainty`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]

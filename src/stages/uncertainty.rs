@@ -604,7 +604,12 @@ pub fn model_colors(g: &crate::model::Gaussians) -> ColorSource<'_> {
     if g.sh_degree == 0 {
         ColorSource::Rgb(&g.color)
     } else {
-        ColorSource::Sh { degree: g.sh_degree, dc: &g.color, rest: &g.sh_rest, frame: ShFrame::World }
+        ColorSource::Sh {
+            degree: g.sh_degree,
+            dc: &g.color,
+            rest: &g.sh_rest,
+            frame: ShFrame::World,
+        }
     }
 }
 
