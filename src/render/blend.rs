@@ -6,12 +6,14 @@
 //! pixels where `σ ∉ [0, ln(255·o)]` or `o·exp(-σ) < ALPHA_THRESHOLD` are skipped.
 //! [`Cutoff::Smooth`] replaces that step by a C¹ ramp (test-only, for finite differences).
 //!
-//! Evaluation order (the GPU shader must mirror it to give the same bits): `σ = 0.5·(a·dx·dx
-//! + c·dy·dy) + b·dx·dy` (left to right, no fused multiply-add), the exponential is
-//! [`exp_neg`] (a Cephes-style polynomial, not the platform's `expf`), `raw = o·vis`. The
-//! evaluation is branch-free so that [`span_alpha`] evaluates a whole row span of a tile in
-//! one loop the compiler vectorises; [`eval_alpha`] (one pixel) runs the same arithmetic,
-//! so the forward pass (spans) and the backward pass make the same skip decisions.
+//! Evaluation order (the GPU shader must mirror it to give the same bits):
+//! `σ = 0.5·(a·dx·dx + c·dy·dy) + b·dx·dy` (left to right, no fused multiply-add), the
+//! exponential is [`exp_neg`] (a Cephes-style polynomial, not the platform's `expf`),
+//! `raw = o·vis`. The evaluation is branch-free so that [`span_alpha`] evaluates a row span
+//! of a tile in a loop the compiler vectorises; [`eval_alpha`] (one pixel) runs the same
+//! arithmetic, so the forward pass (spans) and the backward pass make the same skip
+//! decisions. The row spans themselves come from [`for_each_row`]; the forward pass skips
+//! spans and rows whose pixels have all terminated.
 
 use super::constants::{ALPHA_THRESHOLD, TILE_SIZE};
 use super::project::Splat2d;
@@ -52,14 +54,14 @@ pub const SPAN: usize = TILE_SIZE as usize;
 #[inline(always)]
 pub fn exp_neg(x: f32) -> f32 {
     const ROUND: f32 = 12_582_912.0;
-    let x = x.max(-87.0).min(0.0);
+    let x = if x > -87.0 { x.min(0.0) } else { -87.0 };
     let t = x * std::f32::consts::LOG2_E + ROUND;
     let n = t - ROUND;
     let r = x - n * 0.693_359_4 - n * -2.121_944_4e-4;
     let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
         + 1.666_666_5e-1)
         * r
-        + 5.000_000_1e-1;
+        + 0.5;
     let e = r * r * p + r + 1.0;
     let k = t.to_bits().wrapping_sub(ROUND.to_bits()).wrapping_add(127) << 23;
     e * f32::from_bits(k)
