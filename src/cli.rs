@@ -77,6 +77,8 @@ pub enum BenchCommand {
     Graph(crate::stages::bench_graph::BenchGraphParams),
     /// LPIPS and evaluation timings.
     Metrics(crate::metrics::bench::BenchMetricsParams),
+    /// Per-frame timings of the uncertainty stage's render and convergence test.
+    Uncertainty(crate::stages::bench_uncertainty::BenchUncertaintyParams),
 }
 
 impl Command {
@@ -119,6 +121,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Render(p)) => render::bench::run(&p, ctx),
         Command::Bench(BenchCommand::Graph(p)) => stages::bench_graph::run(&p, ctx),
         Command::Bench(BenchCommand::Metrics(p)) => metrics::bench::run(&p, ctx),
+        Command::Bench(BenchCommand::Uncertainty(p)) => stages::bench_uncertainty::run(&p, ctx),
         Command::Pipeline(c) => pipeline::run_command(&c, ctx),
         Command::Inspect(p) => tables::inspect::run(&p, ctx),
         Command::Check(p) => tables::check::run(&p, ctx),

@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use super::blend::{alpha_vjp, eval_alpha, for_each_row};
+use super::blend::{SpanEval, alpha_vjp, for_each_row, span_eval};
 use super::forward::{RasterInputs, TileList};
 use super::project::Splat2dGrad;
 
@@ -41,8 +41,9 @@ fn backward_tile(
     last_contributor: &[u32],
     v_channels: &[f32],
     v_alpha: &[f32],
+    list: &mut TileList,
 ) -> Vec<f32> {
-    let list: TileList = inp.gather(t);
+    inp.gather_into(t, list);
     let c = inp.num_channels;
     let stride = FIXED + c;
     let w = inp.grid.width as usize;
@@ -64,17 +65,18 @@ fn backward_tile(
         let ch = &list.channels[j * c..(j + 1) * c];
         let (fixed, v_ch_slot) = grads[j * stride..(j + 1) * stride].split_at_mut(FIXED);
         let mut acc = [0.0f32; FIXED];
+        let mut span = SpanEval::default();
         for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
             let py = y as f32 + 0.5;
             let row = (y - y0) as usize * tw;
+            span_eval(g, xa, (xb - xa) as usize, y, inp.alpha_max, inp.cutoff, &mut span);
             for x in xa..xb {
                 let k = row + (x - x0) as usize;
-                if j as u32 >= last[k] {
+                let i = (x - xa) as usize;
+                if j as u32 >= last[k] || span.alpha[i] == 0.0 {
                     continue;
                 }
-                let Some(e) = eval_alpha(g, x as f32 + 0.5, py, inp.alpha_max, inp.cutoff) else {
-                    continue;
-                };
+                let e = span.lane(g, i, x as f32 + 0.5, py);
                 let p = y as usize * w + x as usize;
                 let v_pix = &v_channels[p * c..(p + 1) * c];
                 let ft = final_t[p];
@@ -121,7 +123,9 @@ pub fn rasterize_bwd(
     let stride = FIXED + c;
     let tiles: Vec<Vec<f32>> = (0..inp.grid.num_tiles())
         .into_par_iter()
-        .map(|t| backward_tile(inp, t, final_t, last_contributor, v_channels, v_alpha))
+        .map_init(TileList::default, |list, t| {
+            backward_tile(inp, t, final_t, last_contributor, v_channels, v_alpha, list)
+        })
         .collect();
     let n = inp.splats.len();
     let mut out = BwdGrads { splats: vec![Splat2dGrad::default(); n], channels: vec![0.0; n * c] };
@@ -198,7 +202,7 @@ mod tests {
                 alpha_max: 0.99,
                 cutoff: Cutoff::Smooth,
             };
-            let f = rasterize_fwd(&inp, None);
+            let f = rasterize_fwd(&inp);
             let a: f64 =
                 f.final_t.iter().zip(&v_a).map(|(t, v)| (1.0 - *t as f64) * *v as f64).sum();
             a + f.channels.iter().zip(&v_ch).map(|(c, v)| *c as f64 * *v as f64).sum::<f64>()
@@ -215,7 +219,7 @@ mod tests {
             alpha_max: 0.99,
             cutoff: Cutoff::Smooth,
         };
-        let f = rasterize_fwd(&inp, None);
+        let f = rasterize_fwd(&inp);
         let g = rasterize_bwd(&inp, &f.final_t, &f.last_contributor, &v_ch, &v_a);
         let h_step = 1e-3f32;
         let mut failures = Vec::new();

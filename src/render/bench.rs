@@ -64,7 +64,7 @@ fn default_repeats() -> usize {
 /// Process CPU time (user + system, all threads) in ms from `/proc/self/stat`, assuming
 /// Linux's USER_HZ = 100; `None` elsewhere. On a busy shared machine wall time overstates
 /// the cost; CPU time / threads is what an idle machine would show with perfect scaling.
-fn cpu_ms() -> Option<f64> {
+pub fn cpu_ms() -> Option<f64> {
     let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
     let rest = &stat[stat.rfind(')')? + 1..];
     let f: Vec<&str> = rest.split_whitespace().collect();
@@ -72,7 +72,8 @@ fn cpu_ms() -> Option<f64> {
     Some(ticks * 10.0)
 }
 
-fn median_ms(mut v: Vec<f64>) -> f64 {
+/// Median of `v` (ms).
+pub fn median_ms(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }

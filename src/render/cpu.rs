@@ -12,15 +12,15 @@ use rayon::prelude::*;
 use super::backward::rasterize_bwd;
 use super::blend::Cutoff;
 use super::constants::ALPHA_THRESHOLD;
-use super::forward::{FwdImages, RasterInputs, rasterize_fwd};
+use super::forward::{FwdImages, RasterInputs, failing_pairs, rasterize_fwd};
 use super::isect::{Intersections, TileGrid, isect_tiles, tile_ranges};
 use super::project::{
     CameraConsts, Splat2d, Splat2dGrad, normalize_quat, project, project_vjp, quat_to_rotmat,
 };
 use super::{
-    ColorSource, Convergence, CpuRenderer, DifferentiableRenderer, Error, ImageGrads, RasterPass,
-    RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads,
-    SplatInputs, sh,
+    ColorSource, Convergence, ConvergenceTest, CpuRenderer, DifferentiableRenderer, Error,
+    ImageGrads, RasterPass, RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer,
+    ShFrame, SplatGrads, SplatInputs, sh,
 };
 
 /// Forward state the CPU backward pass needs (one render's worth).
@@ -140,13 +140,12 @@ fn channels(c: &CameraConsts, inputs: &SplatInputs, splats: &[Splat2d]) -> Vec<f
     out
 }
 
-/// Forward through all stages; `pixel_pass` only feeds the convergence counts.
+/// Forward through all stages.
 fn run_forward(
     cam: &RenderCamera,
     inputs: &SplatInputs,
     settings: &RenderSettings,
     pass: RasterPass,
-    pixel_pass: Option<&[bool]>,
 ) -> Result<(SavedForBackward, FwdImages), Error> {
     check_inputs(cam, inputs, settings)?;
     let _span = tracing::debug_span!("render.cpu.forward", n = inputs.means.len()).entered();
@@ -167,7 +166,7 @@ fn run_forward(
         alpha_max: settings.alpha_max,
         cutoff,
     };
-    let mut fwd = rasterize_fwd(&inp, pixel_pass);
+    let mut fwd = rasterize_fwd(&inp);
     let saved = SavedForBackward {
         final_t: std::mem::take(&mut fwd.final_t),
         last_contributor: std::mem::take(&mut fwd.last_contributor),
@@ -180,8 +179,8 @@ fn run_forward(
     Ok((saved, fwd))
 }
 
-/// Per-Gaussian sums of the per-pair statistics, in list order: `(aux, n_fail)`.
-fn reduce_stats(saved: &SavedForBackward, fwd: &FwdImages) -> (RenderAux, Vec<u32>) {
+/// Per-Gaussian sums of the per-pair statistics, in list order.
+fn reduce_stats(saved: &SavedForBackward, fwd: &FwdImages) -> RenderAux {
     let n = saved.splats.len();
     let mut aux = RenderAux {
         visible: vec![false; n],
@@ -190,7 +189,6 @@ fn reduce_stats(saved: &SavedForBackward, fwd: &FwdImages) -> (RenderAux, Vec<u3
         sum_w: vec![0.0; n],
         n_pixels: vec![0; n],
     };
-    let mut n_fail = vec![0u32; n];
     for (&g, s) in saved.isect.gaussian.iter().zip(&fwd.stats) {
         let g = g as usize;
         aux.visible[g] = true;
@@ -198,9 +196,24 @@ fn reduce_stats(saved: &SavedForBackward, fwd: &FwdImages) -> (RenderAux, Vec<u3
         aux.sum_w2[g] += s.sum_w2;
         aux.sum_w[g] += s.sum_w;
         aux.n_pixels[g] += s.n_pixels;
-        n_fail[g] += s.n_fail;
     }
-    (aux, n_fail)
+    aux
+}
+
+/// `[N]` release convergence: the pixel under the projected centre passes.
+fn centre_pass(splats: &[Splat2d], pixel_pass: &[bool], w: usize, h: usize) -> Vec<bool> {
+    splats
+        .iter()
+        .map(|s| {
+            let (x, y) = (s.mean2d[0].floor(), s.mean2d[1].floor());
+            s.valid
+                && x >= 0.0
+                && y >= 0.0
+                && (x as usize) < w
+                && (y as usize) < h
+                && pixel_pass[y as usize * w + x as usize]
+        })
+        .collect()
 }
 
 fn assemble(
@@ -244,8 +257,8 @@ impl CpuRenderer {
         settings: &RenderSettings,
         pass: RasterPass,
     ) -> Result<(RenderOutput, SavedForBackward), Error> {
-        let (saved, fwd) = run_forward(cam, inputs, settings, pass, None)?;
-        let (aux, _) = reduce_stats(&saved, &fwd);
+        let (saved, fwd) = run_forward(cam, inputs, settings, pass)?;
+        let aux = reduce_stats(&saved, &fwd);
         let out = assemble(cam, settings, inputs.num_features, &saved, &fwd, aux);
         Ok((out, saved))
     }
@@ -268,33 +281,11 @@ impl Renderer for CpuRenderer {
         settings: &RenderSettings,
         pixel_pass: &[bool],
     ) -> Result<Convergence, Error> {
-        let (w, h) = (cam.width as usize, cam.height as usize);
-        if pixel_pass.len() != w * h {
-            return Err(Error::Shape {
-                name: "pixel_pass",
-                got: pixel_pass.len(),
-                expected: w * h,
-            });
-        }
-        let (saved, fwd) =
-            run_forward(cam, inputs, settings, RasterPass::Forward, Some(pixel_pass))?;
-        let (aux, n_fail) = reduce_stats(&saved, &fwd);
-        let all_pass =
-            (0..saved.splats.len()).map(|i| aux.n_pixels[i] > 0 && n_fail[i] == 0).collect();
-        let center_pass = saved
-            .splats
-            .iter()
-            .map(|s| {
-                let (x, y) = (s.mean2d[0].floor(), s.mean2d[1].floor());
-                s.valid
-                    && x >= 0.0
-                    && y >= 0.0
-                    && (x as usize) < w
-                    && (y as usize) < h
-                    && pixel_pass[y as usize * w + x as usize]
-            })
-            .collect();
-        Ok(Convergence { all_pass, center_pass })
+        let (out, saved) = self.forward(cam, inputs, settings, RasterPass::Forward)?;
+        let pass = |test| self.convergence_saved(cam, settings, &saved, pixel_pass, test);
+        let all = pass(ConvergenceTest::AllCoveredPixels)?;
+        let all_pass = all.iter().zip(&out.aux.n_pixels).map(|(a, n)| *a && *n > 0).collect();
+        Ok(Convergence { all_pass, center_pass: pass(ConvergenceTest::CentrePixel)? })
     }
 }
 
@@ -369,6 +360,46 @@ impl DifferentiableRenderer for CpuRenderer {
         let g2 = rasterize_bwd(&inp, &saved.final_t, &saved.last_contributor, &v_ch, &v_alpha);
         let consts = CameraConsts::new(cam);
         Ok(project_backward(&consts, inputs, saved, &g2.splats, &g2.channels))
+    }
+
+    fn convergence_saved(
+        &self,
+        cam: &RenderCamera,
+        settings: &RenderSettings,
+        saved: &SavedForBackward,
+        pixel_pass: &[bool],
+        test: ConvergenceTest,
+    ) -> Result<Vec<bool>, Error> {
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        if pixel_pass.len() != w * h {
+            return Err(Error::Shape {
+                name: "pixel_pass",
+                got: pixel_pass.len(),
+                expected: w * h,
+            });
+        }
+        if saved.final_t.len() != w * h {
+            return Err(Error::Settings("saved forward state belongs to another render".into()));
+        }
+        if test == ConvergenceTest::CentrePixel {
+            return Ok(centre_pass(&saved.splats, pixel_pass, w, h));
+        }
+        let inp = RasterInputs {
+            grid: TileGrid::new(cam.width, cam.height),
+            splats: &saved.splats,
+            channels: &saved.channels,
+            num_channels: saved.channels.len() / saved.splats.len().max(1),
+            isect: &saved.isect,
+            offsets: &saved.offsets,
+            alpha_max: settings.alpha_max,
+            cutoff: saved.cutoff,
+        };
+        let fail = failing_pairs(&inp, &saved.last_contributor, pixel_pass);
+        let mut ok = vec![true; saved.splats.len()];
+        for (&g, f) in saved.isect.gaussian.iter().zip(&fail) {
+            ok[g as usize] &= !f;
+        }
+        Ok(ok)
     }
 }
 

@@ -1,9 +1,12 @@
 //! Stage 4, `rasterize_fwd`: front-to-back alpha blending of each tile's depth-sorted
-//! Gaussians (reference for `gpu::rasterize_fwd`).
+//! Gaussians (reference for `gpu::rasterize_fwd`), and [`failing_pairs`], the per-pair
+//! convergence test of the paper's Eq. 5 run on a finished forward pass.
 //!
-//! Mapping: rayon over tiles; within a tile the GPU runs one thread per pixel walking the
-//! tile's list front to back; the CPU runs the same per-pixel arithmetic Gaussian-major
-//! (see `rasterize_tile`), which gives the same bits and skips pixels outside each ellipse. Reads `[N]` [`Splat2d`],
+//! Mapping: rayon over strips of one tile row (each strip owns its rows of the output
+//! images and its tiles' range of the `[M]` statistics, so nothing is copied or merged);
+//! within a tile the GPU runs one thread per pixel walking the tile's list front to back;
+//! the CPU runs the same per-pixel arithmetic Gaussian-major (see `rasterize_tile`), which
+//! gives the same bits and skips pixels outside each ellipse. Reads `[N]` [`Splat2d`],
 //! `[N, C]` channel values, the sorted `[M]` intersections and `[TX·TY+1]` tile offsets.
 //! Writes `[H, W, C]` blended channels (Σ T·α·c, no background), `[H, W]` final
 //! transmittance and last contributor, and `[M]` per-pair statistics (accumulated per tile
@@ -11,7 +14,9 @@
 
 use rayon::prelude::*;
 
-use super::blend::{Cutoff, eval_alpha, for_each_row};
+use std::cell::Cell;
+
+use super::blend::{Cutoff, SPAN, for_each_live_row, span_alpha};
 use super::constants::{T_THRESHOLD, TILE_SIZE};
 use super::isect::{Intersections, TileGrid};
 use super::project::Splat2d;
@@ -25,8 +30,6 @@ pub struct PairStats {
     pub sum_w: f32,
     /// Number of the tile's pixels the Gaussian was blended into.
     pub n_pixels: u32,
-    /// Number of those pixels whose `pixel_pass` entry is false.
-    pub n_fail: u32,
 }
 
 /// Output of [`rasterize_fwd`].
@@ -64,7 +67,9 @@ pub struct RasterInputs<'a> {
     pub cutoff: Cutoff,
 }
 
-/// A tile's Gaussians gathered into contiguous storage, front to back.
+/// A tile's Gaussians gathered into contiguous storage, front to back (reused across the
+/// tiles a worker visits).
+#[derive(Default)]
 pub(crate) struct TileList {
     pub(crate) splats: Vec<Splat2d>,
     pub(crate) channels: Vec<f32>,
@@ -78,14 +83,30 @@ impl RasterInputs<'_> {
         (x0, y0, (x0 + TILE_SIZE).min(self.grid.width), (y0 + TILE_SIZE).min(self.grid.height))
     }
 
-    pub(crate) fn gather(&self, t: usize) -> TileList {
+    /// Gather tile `t`'s splats and channel values into `list` (cleared first).
+    pub(crate) fn gather_into(&self, t: usize, list: &mut TileList) {
         let ids = &self.isect.gaussian[self.offsets[t]..self.offsets[t + 1]];
         let c = self.num_channels;
-        let mut channels = Vec::with_capacity(ids.len() * c);
+        list.splats.clear();
+        list.splats.extend(ids.iter().map(|&g| self.splats[g as usize]));
+        list.channels.clear();
+        list.channels.reserve(ids.len() * c);
         for &g in ids {
-            channels.extend_from_slice(&self.channels[g as usize * c..(g as usize + 1) * c]);
+            list.channels.extend_from_slice(&self.channels[g as usize * c..(g as usize + 1) * c]);
         }
-        TileList { splats: ids.iter().map(|&g| self.splats[g as usize]).collect(), channels }
+    }
+
+    /// Split `v` (`[M]`, list order) into one slice per tile row (strip) of the grid.
+    pub(crate) fn split_by_strip<'v, T>(&self, mut v: &'v mut [T]) -> Vec<&'v mut [T]> {
+        let tx = self.grid.tiles_x as usize;
+        (0..self.grid.tiles_y as usize)
+            .map(|s| {
+                let len = self.offsets[(s + 1) * tx] - self.offsets[s * tx];
+                let (head, tail) = std::mem::take(&mut v).split_at_mut(len);
+                v = tail;
+                head
+            })
+            .collect()
     }
 
     fn check(&self) {
@@ -96,108 +117,186 @@ impl RasterInputs<'_> {
     }
 }
 
-/// Blend one tile. Gaussian-major: each Gaussian, front to back, updates the pixels of
-/// its footprint ([`for_each_row`]); every pixel still sees its Gaussians in list order and
-/// does exactly the arithmetic of the per-pixel loop of the GPU kernel, so the results are
-/// the same bits, while only ~the ellipse area is visited instead of the whole tile.
-fn rasterize_tile(inp: &RasterInputs, t: usize, pixel_pass: Option<&[bool]>) -> TileOut {
-    let list = inp.gather(t);
-    let c = inp.num_channels;
+/// One strip's rows of the output images (`[16, W, C]`, `[16, W]`, `[16, W]`; fewer rows in
+/// the last strip) and its tiles' pair statistics.
+struct Strip<'a> {
+    channels: &'a mut [f32],
+    final_t: &'a mut [f32],
+    last: &'a mut [u32],
+    stats: &'a mut [PairStats],
+}
+
+/// Blend one tile into its strip. Gaussian-major: each Gaussian, front to back, updates the
+/// pixels of its footprint ([`for_each_row`]); every pixel still sees its Gaussians in list
+/// order and does exactly the arithmetic of the per-pixel loop of the GPU kernel, so the
+/// results are the same bits, while only ~the ellipse area is visited instead of the whole
+/// tile. The alphas of a row span come from one vectorised [`span_alpha`] call. `C` is the
+/// channel count when known at compile time (4: colour and depth), 0 otherwise.
+fn rasterize_tile<const C: usize>(
+    inp: &RasterInputs,
+    t: usize,
+    strip: &mut Strip,
+    list: &mut TileList,
+) {
+    inp.gather_into(t, list);
+    let c = if C == 0 { inp.num_channels } else { C };
     let w = inp.grid.width as usize;
     let (x0, y0, x1, y1) = inp.tile_pixels(t);
-    let tw = (x1 - x0) as usize;
-    let n_px = tw * (y1 - y0) as usize;
-    let mut out = TileOut {
-        channels: vec![0.0; n_px * c],
-        final_t: vec![1.0; n_px],
-        last: vec![0; n_px],
-        stats: vec![PairStats::default(); list.splats.len()],
-    };
-    let mut done = vec![false; n_px];
+    let n_px = ((x1 - x0) * (y1 - y0)) as usize;
+    let strip_start = inp.offsets[t - t % inp.grid.tiles_x as usize];
+    let stats = &mut strip.stats[inp.offsets[t] - strip_start..inp.offsets[t + 1] - strip_start];
+    // Per tile row, bit i set when pixel x0 + i has terminated (tiles are ≤ 16 wide).
+    let done: [Cell<u32>; TILE_SIZE as usize] = Default::default();
+    let full = (1u32 << (x1 - x0)) - 1;
     let mut n_done = 0;
+    let mut alphas = [0.0f32; SPAN];
     for (j, g) in list.splats.iter().enumerate() {
         if n_done == n_px {
             break;
         }
         let ch = &list.channels[j * c..(j + 1) * c];
         let mut s = PairStats::default();
-        for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
-            let py = y as f32 + 0.5;
-            let row = (y - y0) as usize * tw;
-            for x in xa..xb {
-                let k = row + (x - x0) as usize;
-                if done[k] {
+        let live = |y: u32| done[(y - y0) as usize].get() != full;
+        for_each_live_row(g, (x0, y0, x1, y1), live, |y, xa, xb| {
+            let row = (y - y0) as usize;
+            // Narrow the span to its pixels that are still blending; skip it when none.
+            let (lo, hi) = (xa - x0, xb - x0);
+            let active = (((1u32 << (hi - lo)) - 1) << lo) & !done[row].get();
+            if active == 0 {
+                return;
+            }
+            let (lo, hi) = (active.trailing_zeros(), 32 - active.leading_zeros());
+            let n = (hi - lo) as usize;
+            span_alpha(g, x0 + lo, n, y, inp.alpha_max, inp.cutoff, &mut alphas);
+            let base = row * w + (x0 + lo) as usize;
+            for (i, &alpha) in alphas[..n].iter().enumerate() {
+                let bit = 1u32 << (lo as usize + i);
+                if alpha == 0.0 || active & bit == 0 {
                     continue;
                 }
-                let Some(e) = eval_alpha(g, x as f32 + 0.5, py, inp.alpha_max, inp.cutoff) else {
-                    continue;
-                };
-                let t = out.final_t[k];
-                let next_t = t * (1.0 - e.alpha);
+                let k = base + i;
+                let t = strip.final_t[k];
+                let next_t = t * (1.0 - alpha);
                 if next_t <= T_THRESHOLD {
-                    done[k] = true;
+                    done[row].set(done[row].get() | bit);
                     n_done += 1;
                     continue;
                 }
-                let wgt = e.alpha * t;
-                for (a, v) in out.channels[k * c..(k + 1) * c].iter_mut().zip(ch) {
+                let wgt = alpha * t;
+                for (a, v) in strip.channels[k * c..(k + 1) * c].iter_mut().zip(ch) {
                     *a += wgt * v;
                 }
                 s.sum_w2 += wgt * wgt;
                 s.sum_w += wgt;
                 s.n_pixels += 1;
-                let pass = pixel_pass.is_none_or(|p| p[y as usize * w + x as usize]);
-                s.n_fail += u32::from(!pass);
-                out.final_t[k] = next_t;
-                out.last[k] = j as u32 + 1;
+                strip.final_t[k] = next_t;
+                strip.last[k] = j as u32 + 1;
             }
         });
-        out.stats[j] = s;
+        stats[j] = s;
     }
-    out
 }
 
-struct TileOut {
-    channels: Vec<f32>,
-    final_t: Vec<f32>,
-    last: Vec<u32>,
-    stats: Vec<PairStats>,
-}
-
-/// Stage `rasterize_fwd`. `pixel_pass` (`[H, W]`, optional) only feeds
-/// [`PairStats::n_fail`].
-pub fn rasterize_fwd(inp: &RasterInputs, pixel_pass: Option<&[bool]>) -> FwdImages {
+/// Stage `rasterize_fwd`.
+pub fn rasterize_fwd(inp: &RasterInputs) -> FwdImages {
     inp.check();
     let _span = tracing::debug_span!("render.rasterize_fwd", m = inp.isect.keys.len()).entered();
     let (w, h, c) = (inp.grid.width as usize, inp.grid.height as usize, inp.num_channels);
-    let tiles: Vec<TileOut> = (0..inp.grid.num_tiles())
-        .into_par_iter()
-        .map(|t| rasterize_tile(inp, t, pixel_pass))
-        .collect();
+    let rows = TILE_SIZE as usize * w;
     let mut img = FwdImages {
         channels: vec![0.0; w * h * c],
-        final_t: vec![0.0; w * h],
+        final_t: vec![1.0; w * h],
         last_contributor: vec![0; w * h],
-        stats: Vec::with_capacity(inp.isect.keys.len()),
+        stats: vec![PairStats::default(); inp.isect.keys.len()],
     };
-    for (t, tile) in tiles.into_iter().enumerate() {
-        let (x0, y0, x1, y1) = inp.tile_pixels(t);
-        let tw = (x1 - x0) as usize;
-        for (r, y) in (y0..y1).enumerate() {
-            let dst = y as usize * w + x0 as usize;
-            img.final_t[dst..dst + tw].copy_from_slice(&tile.final_t[r * tw..(r + 1) * tw]);
-            img.last_contributor[dst..dst + tw].copy_from_slice(&tile.last[r * tw..(r + 1) * tw]);
-            img.channels[dst * c..(dst + tw) * c]
-                .copy_from_slice(&tile.channels[r * tw * c..(r + 1) * tw * c]);
-        }
-        img.stats.extend_from_slice(&tile.stats);
-    }
+    let strips = inp.split_by_strip(&mut img.stats);
+    img.channels
+        .par_chunks_mut(rows * c)
+        .zip(img.final_t.par_chunks_mut(rows))
+        .zip(img.last_contributor.par_chunks_mut(rows))
+        .zip(strips)
+        .enumerate()
+        .for_each_init(TileList::default, |list, (s, (((channels, final_t), last), stats))| {
+            let mut strip = Strip { channels, final_t, last, stats };
+            let tx = inp.grid.tiles_x as usize;
+            for t in s * tx..(s + 1) * tx {
+                if c == 4 {
+                    rasterize_tile::<4>(inp, t, &mut strip, list);
+                } else {
+                    rasterize_tile::<0>(inp, t, &mut strip, list);
+                }
+            }
+        });
     img
+}
+
+/// Convergence test of a finished forward pass (paper Eq. 5's product over covered
+/// pixels): `[M]`, whether the pair's Gaussian was blended into at least one pixel of its
+/// tile whose `pixel_pass` (`[H, W]`) entry is false. A pair at list position `j` of its
+/// tile was blended into pixel `p` exactly when `j < last_contributor[p]` and its alpha there
+/// is positive (the pixel cannot have terminated before its last contributor), so only
+/// failing pixels are visited and no transmittance is recomputed.
+pub fn failing_pairs(
+    inp: &RasterInputs,
+    last_contributor: &[u32],
+    pixel_pass: &[bool],
+) -> Vec<bool> {
+    inp.check();
+    let w = inp.grid.width as usize;
+    assert_eq!(last_contributor.len(), w * inp.grid.height as usize, "last_contributor [H, W]");
+    assert_eq!(pixel_pass.len(), last_contributor.len(), "pixel_pass [H, W]");
+    let _span = tracing::debug_span!("render.failing_pairs", m = inp.isect.keys.len()).entered();
+    let mut fail = vec![false; inp.isect.keys.len()];
+    let tx = inp.grid.tiles_x as usize;
+    inp.split_by_strip(&mut fail).into_par_iter().enumerate().for_each(|(s, strip)| {
+        let strip_start = inp.offsets[s * tx];
+        for t in s * tx..(s + 1) * tx {
+            let (x0, y0, x1, y1) = inp.tile_pixels(t);
+            let last_of = |p: usize| if pixel_pass[p] { 0 } else { last_contributor[p] };
+            // Per tile row, bit i set when pixel x0 + i fails and something was blended.
+            let mut failing = [0u32; TILE_SIZE as usize];
+            let mut max_last = 0;
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let l = last_of(y as usize * w + x as usize);
+                    max_last = max_last.max(l as usize);
+                    failing[(y - y0) as usize] |= u32::from(l > 0) << (x - x0);
+                }
+            }
+            let ids = &inp.isect.gaussian[inp.offsets[t]..inp.offsets[t] + max_last];
+            let out = &mut strip[inp.offsets[t] - strip_start..];
+            let mut alphas = [0.0f32; SPAN];
+            for (j, &g) in ids.iter().enumerate() {
+                let g = &inp.splats[g as usize];
+                let hit = Cell::new(false);
+                let live = |y: u32| !hit.get() && failing[(y - y0) as usize] != 0;
+                for_each_live_row(g, (x0, y0, x1, y1), live, |y, xa, xb| {
+                    let (lo, hi) = (xa - x0, xb - x0);
+                    let active = (((1u32 << (hi - lo)) - 1) << lo) & failing[(y - y0) as usize];
+                    if active == 0 {
+                        return;
+                    }
+                    let (lo, hi) = (active.trailing_zeros(), 32 - active.leading_zeros());
+                    let n = (hi - lo) as usize;
+                    span_alpha(g, x0 + lo, n, y, inp.alpha_max, inp.cutoff, &mut alphas);
+                    let base = y as usize * w + (x0 + lo) as usize;
+                    hit.set(alphas[..n].iter().enumerate().any(|(i, &a)| {
+                        a > 0.0
+                            && active & (1 << (lo as usize + i)) != 0
+                            && j < last_of(base + i) as usize
+                    }));
+                });
+                out[j] = hit.get();
+            }
+        }
+    });
+    fail
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::render::blend::eval_alpha;
     use crate::render::isect::{isect_tiles, tile_ranges};
 
     fn splat(x: f32, y: f32, var: f32, opacity: f32, depth: f32) -> Splat2d {
@@ -236,7 +335,7 @@ mod tests {
             alpha_max: 0.99,
             cutoff: Cutoff::Hard,
         };
-        let out = rasterize_fwd(&inp, None);
+        let out = rasterize_fwd(&inp);
         let order = [1usize, 0, 2]; // by depth
         for y in 0..21 {
             for x in 0..37 {
@@ -287,7 +386,7 @@ mod tests {
             alpha_max: 0.99,
             cutoff: Cutoff::Hard,
         };
-        let out = rasterize_fwd(&inp, None);
+        let out = rasterize_fwd(&inp);
         // α = 0.99 at the centre: T = 1e-2 after one, 1e-4 after two → the second is skipped.
         let i = 8 * 16 + 8;
         assert_eq!(out.last_contributor[i], 1);

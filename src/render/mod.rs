@@ -225,6 +225,16 @@ pub struct Convergence {
     pub center_pass: Vec<bool>,
 }
 
+/// Which per-Gaussian convergence indicator [`DifferentiableRenderer::convergence_saved`]
+/// computes (paper Eq. 5's product, or the release's centre pixel).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConvergenceTest {
+    /// No pixel the Gaussian was blended into fails (vacuously true for unseen Gaussians).
+    AllCoveredPixels,
+    /// The pixel under the projected centre passes, as [`Convergence::center_pass`].
+    CentrePixel,
+}
+
 /// A Gaussian rasterizer.
 pub trait Renderer {
     /// Render one frame.
@@ -329,4 +339,16 @@ pub trait DifferentiableRenderer: Renderer {
         saved: &Self::Saved,
         grads: &ImageGrads,
     ) -> Result<SplatGrads, Error>;
+
+    /// `[N]` convergence indicator of the render that produced `saved` against a per-pixel
+    /// pass map `[H, W]` (computed from that render, e.g. |rendered − truth|₁ < η_c), without
+    /// rendering again: the uncertainty stage renders each frame once.
+    fn convergence_saved(
+        &self,
+        camera: &RenderCamera,
+        settings: &RenderSettings,
+        saved: &Self::Saved,
+        pixel_pass: &[bool],
+        test: ConvergenceTest,
+    ) -> Result<Vec<bool>, Error>;
 }

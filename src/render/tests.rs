@@ -430,3 +430,45 @@ fn convergence_checks_all_covered_pixels_and_the_centre_pixel() {
     assert_eq!(conv.center_pass, vec![false, true, false, false]);
     assert!(CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass[1..]).is_err());
 }
+
+/// The all-covered-pixels indicator computed from a finished render ([`failing_pairs`]
+/// visits failing pixels only) against a per-pixel walk of the sorted Gaussians.
+///
+/// [`failing_pairs`]: super::forward::failing_pairs
+#[test]
+fn convergence_from_the_saved_render_matches_a_per_pixel_walk() {
+    let (w, h) = (48usize, 36usize);
+    let cam = camera(w as u32, h as u32);
+    let s = Scene::from_cloud(cloud(&cam, 120, 10.0, 11));
+    let mut rng = SplitMix64::new(4);
+    let pass: Vec<bool> = (0..w * h).map(|_| rng.uniform() > 0.005).collect();
+    let (out, saved) =
+        CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Forward).unwrap();
+    let all = CpuRenderer
+        .convergence_saved(&cam, &settings(), &saved, &pass, ConvergenceTest::AllCoveredPixels)
+        .unwrap();
+    let splats = &saved.splats;
+    let mut order: Vec<usize> = (0..120).filter(|&i| splats[i].valid).collect();
+    order.sort_by(|&a, &b| splats[a].depth.total_cmp(&splats[b].depth).then(a.cmp(&b)));
+    let mut want = vec![true; 120];
+    for p in (0..w * h).filter(|&p| !pass[p]) {
+        let (px, py) = ((p % w) as f32 + 0.5, (p / w) as f32 + 0.5);
+        let mut t = 1.0f32;
+        for &g in &order {
+            let Some(e) = eval_alpha(&splats[g], px, py, 0.99, Cutoff::Hard) else { continue };
+            if t * (1.0 - e.alpha) <= T_THRESHOLD {
+                break;
+            }
+            want[g] = false;
+            t *= 1.0 - e.alpha;
+        }
+    }
+    assert_eq!(all, want);
+    let count =
+        |ok: bool| want.iter().zip(&out.aux.n_pixels).filter(|(o, n)| **o == ok && **n > 0).count();
+    let (failing, passing) = (count(false), count(true));
+    assert!(failing > 5 && passing > 5, "{failing} failing, {passing} passing: weak test");
+    let conv = CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass).unwrap();
+    let seen: Vec<bool> = want.iter().zip(&out.aux.n_pixels).map(|(ok, n)| *ok && *n > 0).collect();
+    assert_eq!(conv.all_pass, seen);
+}

@@ -30,8 +30,8 @@ use super::graph::Profile;
 use crate::context::Context;
 use crate::image_io::Image;
 use crate::render::{
-    ColorSource, CpuRenderer, RenderAux, RenderCamera, RenderSettings, Renderer, ShFrame,
-    SplatInputs,
+    ColorSource, ConvergenceTest, CpuRenderer, DifferentiableRenderer, RasterPass, RenderAux,
+    RenderCamera, RenderSettings, ShFrame, SplatInputs,
 };
 use crate::tables::uncertainty::UncertaintyFrame;
 
@@ -304,8 +304,13 @@ pub fn normalise(frames: &mut [UncertaintyFrame], target: f32, clip: f32, phi: f
 }
 
 /// SSIM map `[H, W, 3]` of two `[H, W, 3]` images: 11×11 Gaussian window, σ = 1.5, zero
-/// ('same') padding, C1 = 0.01², C2 = 0.03².
+/// ('same') padding, C1 = 0.01², C2 = 0.03². Rayon over channels and image rows; every
+/// output value is computed by one fixed sequence of operations (thread-count independent).
 pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
+    use rayon::prelude::*;
+    if w == 0 || h == 0 {
+        return Vec::new();
+    }
     let g: Vec<f32> = {
         let k: Vec<f32> =
             (0..11).map(|i| (-((i as f32 - 5.0).powi(2)) / (2.0 * 1.5 * 1.5)).exp()).collect();
@@ -314,41 +319,51 @@ pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
     };
     let blur = |x: &[f32]| -> Vec<f32> {
         let mut tmp = vec![0.0; w * h];
-        let mut out = vec![0.0; w * h];
-        for y in 0..h {
-            for xx in 0..w {
-                tmp[y * w + xx] = (0..11)
+        tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (xx, o) in row.iter_mut().enumerate() {
+                *o = (0..11)
                     .filter_map(|k| {
                         (xx + k).checked_sub(5).filter(|&c| c < w).map(|c| g[k] * x[y * w + c])
                     })
                     .sum();
             }
-        }
-        for y in 0..h {
-            for xx in 0..w {
-                out[y * w + xx] = (0..11)
+        });
+        let mut out = vec![0.0; w * h];
+        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (xx, o) in row.iter_mut().enumerate() {
+                *o = (0..11)
                     .filter_map(|k| {
                         (y + k).checked_sub(5).filter(|&r| r < h).map(|r| g[k] * tmp[r * w + xx])
                     })
                     .sum();
             }
-        }
+        });
         out
     };
     let (c1, c2) = (0.01f32 * 0.01, 0.03f32 * 0.03);
+    let channels: Vec<Vec<f32>> = (0..3)
+        .into_par_iter()
+        .map(|c| {
+            let x: Vec<f32> = (0..w * h).map(|i| a[i * 3 + c]).collect();
+            let y: Vec<f32> = (0..w * h).map(|i| b[i * 3 + c]).collect();
+            let xx: Vec<f32> = x.iter().map(|v| v * v).collect();
+            let yy: Vec<f32> = y.iter().map(|v| v * v).collect();
+            let xy: Vec<f32> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
+            let (mx, my, sxx, syy, sxy) = (blur(&x), blur(&y), blur(&xx), blur(&yy), blur(&xy));
+            (0..w * h)
+                .map(|i| {
+                    let (vx, vy, cv) =
+                        (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
+                    ((2.0 * mx[i] * my[i] + c1) * (2.0 * cv + c2))
+                        / ((mx[i] * mx[i] + my[i] * my[i] + c1) * (vx + vy + c2))
+                })
+                .collect()
+        })
+        .collect();
     let mut out = vec![0.0; w * h * 3];
-    for c in 0..3 {
-        let x: Vec<f32> = (0..w * h).map(|i| a[i * 3 + c]).collect();
-        let y: Vec<f32> = (0..w * h).map(|i| b[i * 3 + c]).collect();
-        let xx: Vec<f32> = x.iter().map(|v| v * v).collect();
-        let yy: Vec<f32> = y.iter().map(|v| v * v).collect();
-        let xy: Vec<f32> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
-        let (mx, my, sxx, syy, sxy) = (blur(&x), blur(&y), blur(&xx), blur(&yy), blur(&xy));
-        for i in 0..w * h {
-            let (vx, vy, cv) =
-                (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
-            out[i * 3 + c] = ((2.0 * mx[i] * my[i] + c1) * (2.0 * cv + c2))
-                / ((mx[i] * mx[i] + my[i] * my[i] + c1) * (vx + vy + c2));
+    for (c, m) in channels.iter().enumerate() {
+        for (i, v) in m.iter().enumerate() {
+            out[i * 3 + c] = *v;
         }
     }
     out
@@ -411,6 +426,103 @@ pub fn apply_gates(
     }
 }
 
+/// One frame's references for Eq. 4 and the release gates.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameTruth<'a> {
+    /// `[H, W, 3]` ground-truth colour composited over the render background.
+    pub rgb: &'a [f32],
+    /// `[H, W]` foreground mask (all true without masks).
+    pub mask: &'a [bool],
+    /// `[H, W]` prior depth for the depth-edge gate, when the frame has one.
+    pub depth: Option<&'a [f32]>,
+}
+
+/// The stage's work on one frame once its inputs are loaded: one render of the whole model
+/// from the training camera, Eq. 4's pass map with the release gates, the convergence
+/// indicator from that same render (no second render), then Eqs. 3 and 5.
+pub fn frame_work(
+    t: u32,
+    camera: &RenderCamera,
+    inputs: &SplatInputs,
+    settings: &RenderSettings,
+    truth: &FrameTruth,
+    rows: &[usize],
+    s: &UncertaintySettings,
+) -> Result<UncertaintyFrame, crate::render::Error> {
+    let renderer = CpuRenderer;
+    let (out, saved) = renderer.render_with_saved(camera, inputs, settings, RasterPass::Forward)?;
+    let (w, h) = (out.width, out.height);
+    let mut pass = pixel_pass(&out.color, truth.rgb, s.eta_c, s.channel_reduce);
+    apply_gates(&mut pass, &out.color, truth.rgb, truth.depth, truth.mask, (w, h), s);
+    let test = match s.gate {
+        Gate::AllCoveredPixels => ConvergenceTest::AllCoveredPixels,
+        Gate::CentrePixel => ConvergenceTest::CentrePixel,
+    };
+    let indicator = renderer.convergence_saved(camera, settings, &saved, &pass, test)?;
+    Ok(frame_uncertainty(t, &out.aux, &indicator, rows, s.phi))
+}
+
+/// A frame's references read from the scene directory (owned [`FrameTruth`]).
+#[derive(Debug, Clone)]
+pub struct LoadedTruth {
+    /// `[H, W, 3]` ground truth over the background.
+    pub rgb: Vec<f32>,
+    /// `[H, W]` mask (all true when the camera has none).
+    pub mask: Vec<bool>,
+    /// `[H, W]` prior depth, read only when the depth-edge gate is on.
+    pub depth: Option<Vec<f32>>,
+    /// The depth-edge gate is on but the camera has no depth map.
+    pub missing_depth: bool,
+}
+
+impl LoadedTruth {
+    /// Read the image (and mask, and depth when the gate needs it) of training camera
+    /// `cam`; errors name the file.
+    pub fn load(
+        scene: &crate::scene::Scene,
+        cam: &crate::scene::Camera,
+        background: [f32; 3],
+        s: &UncertaintySettings,
+    ) -> anyhow::Result<Self> {
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let image_path = scene.resolve(&cam.image_path);
+        let truth = crate::image_io::read_png(&image_path)?.rgb_over(background);
+        if truth.width != w || truth.height != h {
+            anyhow::bail!(
+                "{}: image is {}x{}, the camera says {w}x{h}",
+                image_path.display(),
+                truth.width,
+                truth.height
+            );
+        }
+        let mask: Vec<bool> = match &cam.mask_path {
+            Some(m) => {
+                let img: Image = crate::image_io::read_png(&scene.resolve(m))?;
+                (0..w * h).map(|i| img.data[i * img.channels] >= 0.5).collect()
+            }
+            None => vec![true; w * h],
+        };
+        let (depth, missing_depth) = match (&cam.depth_path, s.depth_edge_percentile) {
+            (Some(d), Some(_)) => {
+                let path = scene.resolve(d);
+                let depth = crate::image_io::read_npy_f32(&path)?.1;
+                if depth.len() != w * h {
+                    anyhow::bail!("{}: depth map is not {w}x{h}", path.display());
+                }
+                (Some(depth), false)
+            }
+            (None, Some(_)) => (None, true),
+            _ => (None, false),
+        };
+        Ok(LoadedTruth { rgb: truth.data, mask, depth, missing_depth })
+    }
+
+    /// Borrowed view for [`frame_work`].
+    pub fn view(&self) -> FrameTruth<'_> {
+        FrameTruth { rgb: &self.rgb, mask: &self.mask, depth: self.depth.as_deref() }
+    }
+}
+
 /// `usplat4d uncertainty`: render every training frame, write `OUT/uncertainty.parquet`.
 pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     use crate::tables::Table;
@@ -432,18 +544,8 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     let rows: Vec<usize> =
         (0..g.len()).filter(|&i| s.scope == Scope::All || g.dynamic[i]).collect();
     let ids: Vec<u32> = rows.iter().map(|&i| g.id[i]).collect();
-    let colors = if g.sh_degree == 0 {
-        ColorSource::Rgb(&g.color)
-    } else {
-        ColorSource::Sh {
-            degree: g.sh_degree,
-            dc: &g.color,
-            rest: &g.sh_rest,
-            frame: ShFrame::World,
-        }
-    };
+    let colors = model_colors(g);
     let settings = RenderSettings::default();
-    let renderer = CpuRenderer;
     let mut frames = Vec::with_capacity(cams.len());
     let mut warned_depth = false;
     let bar = ctx.progress(cams.len() as u64, "uncertainty");
@@ -458,52 +560,18 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
             features: &[],
             num_features: 0,
         };
+        let loaded = LoadedTruth::load(&scene, cam, settings.background, &s)?;
+        if loaded.missing_depth && !warned_depth {
+            warned_depth = true;
+            ctx.warn(format!(
+                "uncertainty: frame {t} has no depth map; the depth-edge gate is not applied"
+            ));
+        }
+        let truth = loaded.view();
         let camera = RenderCamera::from(*cam);
-        let out = renderer
-            .render(&camera, &inputs, &settings)
+        let frame = frame_work(t as u32, &camera, &inputs, &settings, &truth, &rows, &s)
             .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
-        let (w, h) = (cam.width as usize, cam.height as usize);
-        let image_path = scene.resolve(&cam.image_path);
-        let truth = crate::image_io::read_png(&image_path)?.rgb_over(settings.background);
-        if truth.width != w || truth.height != h {
-            anyhow::bail!(
-                "{}: image is {}x{}, the camera says {w}x{h}",
-                image_path.display(),
-                truth.width,
-                truth.height
-            );
-        }
-        let mut pass = pixel_pass(&out.color, &truth.data, s.eta_c, s.channel_reduce);
-        let mask = match &cam.mask_path {
-            Some(m) => {
-                let img: Image = crate::image_io::read_png(&scene.resolve(m))?;
-                (0..w * h).map(|i| img.data[i * img.channels] >= 0.5).collect()
-            }
-            None => vec![true; w * h],
-        };
-        let depth = match (&cam.depth_path, s.depth_edge_percentile) {
-            (Some(d), Some(_)) => Some(crate::image_io::read_npy_f32(&scene.resolve(d))?.1),
-            (None, Some(_)) if !warned_depth => {
-                warned_depth = true;
-                ctx.warn(format!(
-                    "uncertainty: frame {t} has no depth map; the depth-edge gate is not applied"
-                ));
-                None
-            }
-            _ => None,
-        };
-        if depth.as_ref().is_some_and(|d| d.len() != w * h) {
-            anyhow::bail!("frame {t}: depth map is not {w}x{h}");
-        }
-        apply_gates(&mut pass, &out.color, &truth.data, depth.as_deref(), &mask, (w, h), &s);
-        let conv = renderer
-            .convergence(&camera, &inputs, &settings, &pass)
-            .map_err(|e| anyhow::anyhow!("frame {t}: convergence: {e}"))?;
-        let indicator = match s.gate {
-            Gate::AllCoveredPixels => conv.all_pass,
-            Gate::CentrePixel => conv.center_pass,
-        };
-        frames.push(frame_uncertainty(t as u32, &out.aux, &indicator, &rows, s.phi));
+        frames.push(frame);
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -529,6 +597,20 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     }
     w.finish()?;
     Ok(())
+}
+
+/// The colour source of a model's Gaussians (RGB, or world-frame SH when degree > 0).
+pub fn model_colors(g: &crate::model::Gaussians) -> ColorSource<'_> {
+    if g.sh_degree == 0 {
+        ColorSource::Rgb(&g.color)
+    } else {
+        ColorSource::Sh {
+            degree: g.sh_degree,
+            dc: &g.color,
+            rest: &g.sh_rest,
+            frame: ShFrame::World,
+        }
+    }
 }
 
 #[cfg(test)]
