@@ -5,11 +5,12 @@
 //! the user cache ([`weights::default_path`]).
 //!
 //! Submodules: [`pickle`] (a minimal pickle VM), [`weights`] (checkpoint, safetensors,
-//! hashes), [`network`] (the network itself).
+//! hashes), [`network`] (the network itself), [`winograd`] (its fast convolutions).
 
 pub mod network;
 pub mod pickle;
 pub mod weights;
+pub mod winograd;
 
 use std::path::{Path, PathBuf};
 
