@@ -9,6 +9,12 @@
 //! over chunks, so results do not depend on the thread count) the patch matrix
 //! `[P, k·k·Cin]` (order ky, kx, ci) is multiplied by the weights `[k·k·Cin, Cout]` (HWIO)
 //! with `ndarray`'s blocked GEMM (matrixmultiply).
+//!
+//! Feature maps and the large convolution buffers come from a process-wide pool of
+//! recycled buffers ([`scratch`]): fresh multi-megabyte allocations are new pages that the
+//! kernel faults in and clears on every call, which took a quarter of the network's time.
+
+use std::sync::Mutex;
 
 use ndarray::{ArrayView2, ArrayViewMut2, linalg::general_mat_mul};
 use rayon::prelude::*;
@@ -95,27 +101,30 @@ impl Conv {
         let cout = self.cout;
         let weights =
             ArrayView2::from_shape((kk, cout), &self.hwio).expect("weights are [k·k·Cin, Cout]");
-        let mut out = vec![0.0f32; oh * ow * cout];
+        let mut out = scratch::take(oh * ow * cout);
         out.par_chunks_mut(CHUNK * cout).enumerate().for_each(|(chunk, out)| {
             let p0 = chunk * CHUNK;
             let np = out.len() / cout;
-            let mut col = vec![0.0f32; np * kk];
-            for r in 0..np {
+            let mut col = scratch::take(np * kk);
+            let cin = self.cin;
+            for (r, patch) in col.chunks_exact_mut(kk).enumerate() {
                 let (oy, ox) = ((p0 + r) / ow, (p0 + r) % ow);
-                for ky in 0..k {
+                // Input columns ox·s − p .. +k, clipped to the image: kx in kx0..kx1.
+                let ix = (ox * s) as isize - p as isize;
+                let kx0 = (-ix).clamp(0, k as isize) as usize;
+                let kx1 = (x.w as isize - ix).clamp(kx0 as isize, k as isize) as usize;
+                for (ky, dst) in patch.chunks_exact_mut(k * cin).enumerate() {
                     let iy = (oy * s + ky) as isize - p as isize;
-                    if iy < 0 || iy >= x.h as isize {
+                    if iy < 0 || iy >= x.h as isize || kx0 == kx1 {
+                        dst.fill(0.0);
                         continue;
                     }
-                    for kx in 0..k {
-                        let ix = (ox * s + kx) as isize - p as isize;
-                        if ix < 0 || ix >= x.w as isize {
-                            continue;
-                        }
-                        let src = (iy as usize * x.w + ix as usize) * self.cin;
-                        let dst = r * kk + (ky * k + kx) * self.cin;
-                        col[dst..dst + self.cin].copy_from_slice(&x.data[src..src + self.cin]);
-                    }
+                    let src = (iy as usize * x.w) as isize + ix;
+                    let src = (src + kx0 as isize) as usize * cin;
+                    dst[..kx0 * cin].fill(0.0);
+                    dst[kx0 * cin..kx1 * cin]
+                        .copy_from_slice(&x.data[src..src + (kx1 - kx0) * cin]);
+                    dst[kx1 * cin..].fill(0.0);
                 }
             }
             for row in out.chunks_exact_mut(cout) {
@@ -128,6 +137,7 @@ impl Conv {
             for v in out.iter_mut() {
                 *v = v.max(0.0);
             }
+            scratch::give(col);
         });
         Features { h: oh, w: ow, c: cout, data: out }
     }
@@ -137,7 +147,8 @@ impl Conv {
 fn max_pool(x: &Features) -> Features {
     let oh = (x.h - 3) / 2 + 1;
     let ow = (x.w - 3) / 2 + 1;
-    let mut out = vec![f32::NEG_INFINITY; oh * ow * x.c];
+    let mut out = scratch::take(oh * ow * x.c);
+    out.fill(f32::NEG_INFINITY);
     for oy in 0..oh {
         for ox in 0..ow {
             let dst = &mut out[(oy * ow + ox) * x.c..(oy * ow + ox + 1) * x.c];
@@ -171,19 +182,27 @@ impl Network {
     /// (mapped to [−1, 1], then through the scaling layer). `H, W ≥ MIN_SIDE`.
     pub fn taps(&self, rgb: &[f32], w: usize, h: usize) -> Vec<Features> {
         assert!(w >= MIN_SIDE && h >= MIN_SIDE, "image {w}x{h} below {MIN_SIDE}");
-        let data = rgb
-            .chunks_exact(3)
-            .flat_map(|p| (0..3).map(move |c| ((2.0 * p[c] - 1.0) - SHIFT[c]) / SCALE[c]))
-            .collect();
-        let mut x = Features { h, w, c: 3, data };
-        let mut taps = Vec::with_capacity(5);
-        for (i, conv) in self.convs.iter().enumerate() {
-            x = conv.forward_relu(&x);
-            taps.push(x.clone());
-            if i < 2 {
-                x = max_pool(&x);
+        let mut data = scratch::take(rgb.len());
+        for (d, p) in data.chunks_exact_mut(3).zip(rgb.chunks_exact(3)) {
+            for c in 0..3 {
+                d[c] = ((2.0 * p[c] - 1.0) - SHIFT[c]) / SCALE[c];
             }
         }
+        let mut x = Features { h, w, c: 3, data };
+        let mut taps: Vec<Features> = Vec::with_capacity(5);
+        for (i, conv) in self.convs.iter().enumerate() {
+            let input = match i {
+                0 => &x,
+                1 | 2 => {
+                    let pooled = max_pool(&taps[i - 1]);
+                    scratch::give(std::mem::replace(&mut x, pooled).data);
+                    &x
+                }
+                _ => &taps[i - 1],
+            };
+            taps.push(conv.forward_relu(input));
+        }
+        scratch::give(x.data);
         taps
     }
 
@@ -212,7 +231,55 @@ impl Network {
                 *m += v;
             }
         }
+        for f in ta.into_iter().chain(tb) {
+            scratch::give(f.data);
+        }
         map
+    }
+}
+
+/// A process-wide pool of `f32` buffers for feature maps and convolution scratch.
+pub(super) mod scratch {
+    use super::Mutex;
+
+    /// The pooled buffers.
+    static POOL: Mutex<Vec<Vec<f32>>> = Mutex::new(Vec::new());
+    /// Most bytes the pool keeps (the largest buffers of one 512x512 pair are about
+    /// 17 MB; two pairs run at once on two threads).
+    const MAX_BYTES: usize = 192 << 20;
+
+    /// A buffer of `len` values with **unspecified contents** (the caller overwrites
+    /// every value): the smallest pooled one that fits, or a new one.
+    pub fn take(len: usize) -> Vec<f32> {
+        let mut pool = POOL.lock().unwrap_or_else(|e| e.into_inner());
+        let best = (0..pool.len())
+            .filter(|&i| pool[i].capacity() >= len)
+            .min_by_key(|&i| pool[i].capacity());
+        match best {
+            Some(i) => {
+                let mut v = pool.swap_remove(i);
+                drop(pool);
+                v.truncate(len);
+                v.resize(len, 0.0);
+                v
+            }
+            None => {
+                drop(pool);
+                vec![0.0; len]
+            }
+        }
+    }
+
+    /// Return a buffer to the pool; the smallest buffers are dropped beyond
+    /// [`MAX_BYTES`].
+    pub fn give(v: Vec<f32>) {
+        let mut pool = POOL.lock().unwrap_or_else(|e| e.into_inner());
+        pool.push(v);
+        let bytes = |p: &[Vec<f32>]| p.iter().map(|v| v.capacity() * 4).sum::<usize>();
+        while bytes(&pool) > MAX_BYTES {
+            let smallest = (0..pool.len()).min_by_key(|&i| pool[i].capacity()).expect("non-empty");
+            pool.swap_remove(smallest);
+        }
     }
 }
 

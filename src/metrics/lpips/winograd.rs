@@ -20,6 +20,8 @@
 use ndarray::{ArrayView2, ArrayViewMut2, ShapeBuilder, linalg::general_mat_mul};
 use rayon::prelude::*;
 
+use super::network::scratch;
+
 /// Interpolation points of F(4×4, 3×3) and F(2×2, 5×5) (`n = 6`: five finite points);
 /// ±1/2 rather than ±2 halves the f32 error of F(4×4, 3×3) on AlexNet-like layers.
 const POINTS_6: [f64; 5] = [0.0, 1.0, -1.0, 0.5, -0.5];
@@ -153,7 +155,7 @@ impl WinogradConv {
         let tiles = th * tw;
         let nn = n * n;
         // Input transform: V [tiles, n², Cin].
-        let mut v = vec![0.0f32; tiles * nn * cin];
+        let mut v = scratch::take(tiles * nn * cin);
         v.par_chunks_mut(nn * cin).enumerate().for_each_init(
             || (vec![0.0f32; nn * cin], vec![0.0f32; nn * cin]),
             |(d, tmp), (t, out)| {
@@ -179,7 +181,7 @@ impl WinogradConv {
             },
         );
         // n² products: M [n², tiles, Cout].
-        let mut prod = vec![0.0f32; nn * tiles * cout];
+        let mut prod = scratch::take(nn * tiles * cout);
         prod.par_chunks_mut(tiles * cout).enumerate().for_each(|(xi, c)| {
             let a = ArrayView2::from_shape((tiles, cin).strides((nn * cin, 1)), &v[xi * cin..])
                 .expect("V is [tiles, n², Cin]");
@@ -193,7 +195,7 @@ impl WinogradConv {
             general_mat_mul(1.0, &a, &b, 0.0, &mut c);
         });
         // Output transform, bias and ReLU, by rows of tiles.
-        let mut out = vec![0.0f32; oh * ow * cout];
+        let mut out = scratch::take(oh * ow * cout);
         out.par_chunks_mut(m * ow * cout).enumerate().for_each_init(
             || (vec![0.0f32; nn * cout], vec![0.0f32; m * n * cout], vec![0.0f32; m * m * cout]),
             |(mt, tmp, y), (ty, rows)| {
@@ -219,6 +221,8 @@ impl WinogradConv {
                 }
             },
         );
+        scratch::give(v);
+        scratch::give(prod);
         (oh, ow, out)
     }
 }
