@@ -61,14 +61,26 @@ pub fn ssim(a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<f64> {
     Ok(total / (3 * (w - WINDOW + 1) * (h - WINDOW + 1)) as f64)
 }
 
-/// `jnp.sign`: −1, 0 or 1.
-fn sign(v: f64) -> f64 {
-    if v > 0.0 {
-        1.0
-    } else if v < 0.0 {
-        -1.0
-    } else {
-        0.0
+/// Outputs computed together by [`filter`] (in registers).
+const BLOCK: usize = 8;
+
+/// `out[x] = Σ_k f[k]·src[k][x]` for every `x` of `out`, summing the taps in order
+/// k = 0..10 from 0; blocks of [`BLOCK`] outputs are accumulated in registers.
+fn filter(f: &[f64; WINDOW], src: &[&[f64]; WINDOW], out: &mut [f64]) {
+    let mut blocks = out.chunks_exact_mut(BLOCK);
+    let mut x = 0;
+    for o in &mut blocks {
+        let mut acc = [0.0f64; BLOCK];
+        for (f, s) in f.iter().zip(src) {
+            for (a, v) in acc.iter_mut().zip(&s[x..x + BLOCK]) {
+                *a += f * v;
+            }
+        }
+        o.copy_from_slice(&acc);
+        x += BLOCK;
+    }
+    for (i, o) in blocks.into_remainder().iter_mut().enumerate() {
+        *o = f.iter().zip(src).fold(0.0, |a, (f, s)| a + f * s[x + i]);
     }
 }
 
@@ -80,7 +92,8 @@ fn ssim_value(s: [f64; 5]) -> f64 {
     let s00 = (e00 - m0 * m0).max(0.0);
     let s11 = (e11 - m1 * m1).max(0.0);
     let s01 = e01 - m0 * m1;
-    let s01 = sign(s01) * (s00 * s11).sqrt().min(s01.abs());
+    // sign(σ01)·min(√(σ00σ11), |σ01|), branch-free (0 stays 0).
+    let s01 = (s00 * s11).sqrt().min(s01.abs()).copysign(s01);
     let numer = (2.0 * m0 * m1 + c1) * (2.0 * s01 + c2);
     let denom = (m0 * m0 + m1 * m1 + c1) * (s00 + s11 + c2);
     numer / denom
@@ -146,6 +159,7 @@ impl Blur {
         let mut input = vec![0.0f64; SIGNALS * w];
         let mut ring = vec![0.0f64; WINDOW * SIGNALS * w1];
         let mut out = vec![0.0f64; SIGNALS * w1];
+        let mut map = vec![0.0f64; w1];
         let mut total = 0.0f64;
         for y in 0..h {
             // The five input rows `[5, W]`, masked.
@@ -170,12 +184,7 @@ impl Blur {
             // Horizontal pass into the ring slot of row y.
             let slot = &mut ring[(y % WINDOW) * SIGNALS * w1..(y % WINDOW + 1) * SIGNALS * w1];
             for (acc, row) in slot.chunks_exact_mut(w1).zip(input.chunks_exact(w)) {
-                acc.fill(0.0);
-                for (k, f) in self.f.iter().enumerate() {
-                    for (a, v) in acc.iter_mut().zip(&row[k..k + w1]) {
-                        *a += f * v;
-                    }
-                }
+                filter(&self.f, &std::array::from_fn(|k| &row[k..k + w1]), acc);
                 if let Some(m) = &self.masks {
                     for (a, s) in acc.iter_mut().zip(&m.scale1[y * w1..(y + 1) * w1]) {
                         *a *= s;
@@ -188,14 +197,11 @@ impl Blur {
             // Vertical pass of output row oy = y − 10 over ring rows oy..=y.
             let oy = y + 1 - WINDOW;
             for (s, acc) in out.chunks_exact_mut(w1).enumerate() {
-                acc.fill(0.0);
-                for (k, f) in self.f.iter().enumerate() {
+                let src = std::array::from_fn(|k| {
                     let r = (oy + k) % WINDOW;
-                    let src = &ring[(r * SIGNALS + s) * w1..(r * SIGNALS + s + 1) * w1];
-                    for (a, v) in acc.iter_mut().zip(src) {
-                        *a += f * v;
-                    }
-                }
+                    &ring[(r * SIGNALS + s) * w1..(r * SIGNALS + s + 1) * w1]
+                });
+                filter(&self.f, &src, acc);
                 if let Some(m) = &self.masks {
                     for (a, s) in acc.iter_mut().zip(&m.scale2[oy * w1..(oy + 1) * w1]) {
                         *a *= s;
@@ -203,13 +209,16 @@ impl Blur {
                 }
             }
             for x in 0..w1 {
-                total += ssim_value([
+                map[x] = ssim_value([
                     out[x],
                     out[w1 + x],
                     out[2 * w1 + x],
                     out[3 * w1 + x],
                     out[4 * w1 + x],
                 ]);
+            }
+            for v in &map {
+                total += v;
             }
         }
         total

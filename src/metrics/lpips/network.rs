@@ -2,13 +2,15 @@
 //! scaling layer, AlexNet `features` up to relu5, channel-normalised squared differences,
 //! 1x1 linear layers and the bilinear (align_corners=False) upsampling of the spatial map.
 //!
-//! Feature maps are `[h, w, C]` row-major. The stride-1 convolutions (conv2 5x5, conv3-5
-//! 3x3: 5.3 of the 6.1 GFLOP of a 512x512 image) use Winograd F(3x3, 5x5) and F(4x4, 3x3)
-//! ([`super::winograd`]), which need about a quarter of the multiplications. conv1 (11x11,
-//! stride 4) is im2col + matrix product: for a fixed-size chunk of output positions (rayon
-//! over chunks, so results do not depend on the thread count) the patch matrix
-//! `[P, k·k·Cin]` (order ky, kx, ci) is multiplied by the weights `[k·k·Cin, Cout]` (HWIO)
-//! with `ndarray`'s blocked GEMM (matrixmultiply).
+//! Feature maps are `[h, w, C]` row-major. Every convolution runs in the Winograd domain
+//! ([`super::winograd`]), which needs about a quarter of the multiplications: conv2 (5x5)
+//! by F(3x3, 5x5), conv3-5 (3x3) by F(4x4, 3x3), and conv1 (11x11, stride 4) as the
+//! equivalent 3x3 stride-1 convolution over the space-to-depth input (48 channels, the
+//! kernel zero-padded to 12x12) by F(4x4, 3x3). The reference path, im2col + matrix
+//! product, remains for other kernels and for the tests: for a fixed-size chunk of output
+//! positions (rayon over chunks, so results do not depend on the thread count) the patch
+//! matrix `[P, k·k·Cin]` (order ky, kx, ci) is multiplied by the weights `[k·k·Cin, Cout]`
+//! (HWIO) with `ndarray`'s blocked GEMM (matrixmultiply).
 //!
 //! Feature maps and the large convolution buffers come from a process-wide pool of
 //! recycled buffers ([`scratch`]): fresh multi-megabyte allocations are new pages that the
@@ -46,8 +48,9 @@ pub struct Features {
     pub data: Vec<f32>,
 }
 
-/// One convolution ready for im2col (weights `[k·k·Cin, Cout]`, HWIO) and, for stride 1
-/// and a kernel with Winograd transforms, in the Winograd domain.
+/// One convolution ready for im2col (weights `[k·k·Cin, Cout]`, HWIO) and, where the
+/// kernel (stride 1) or its space-to-depth form (stride s) has Winograd transforms, in the
+/// Winograd domain.
 struct Conv {
     cin: usize,
     cout: usize,
@@ -56,6 +59,9 @@ struct Conv {
     pad: usize,
     hwio: Vec<f32>,
     bias: Vec<f32>,
+    /// The Winograd form: of the convolution itself (stride 1) or, for stride `s`, of the
+    /// equivalent stride-1 convolution with kernel side `⌈k/s⌉` over the space-to-depth
+    /// input `[⌈H/s⌉, ⌈W/s⌉, s·s·Cin]` (channel `(dy·s + dx)·Cin + ci`).
     winograd: Option<WinogradConv>,
 }
 
@@ -73,22 +79,72 @@ impl Conv {
                 }
             }
         }
-        let winograd = winograd::tile_for_kernel(k)
-            .filter(|_| stride == 1)
-            .map(|m| WinogradConv::new(&w.weight, cin, cout, k, pad, m));
+        let winograd = if stride == 1 {
+            winograd::tile_for_kernel(k).map(|m| WinogradConv::new(&w.weight, cin, cout, k, pad, m))
+        } else {
+            // Kernel [Cout, s·s·Cin, k', k'] of the space-to-depth form: tap (a, b) of
+            // channel (dy, dx, ci) is tap (a·s + dy, b·s + dx) of the original (0 beyond k).
+            let (s, ks) = (stride, k.div_ceil(stride));
+            winograd::tile_for_kernel(ks).map(|m| {
+                let cs = s * s * cin;
+                let mut ws = vec![0.0f32; cout * cs * ks * ks];
+                for co in 0..cout {
+                    for ci in 0..cin {
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let (a, dy, b, dx) = (ky / s, ky % s, kx / s, kx % s);
+                                let c2 = (dy * s + dx) * cin + ci;
+                                ws[((co * cs + c2) * ks + a) * ks + b] =
+                                    w.weight[((co * cin + ci) * k + ky) * k + kx];
+                            }
+                        }
+                    }
+                }
+                WinogradConv::new(&ws, cs, cout, ks, 0, m)
+            })
+        };
         Conv { cin, cout, k, stride, pad, hwio, bias: w.bias.clone(), winograd }
     }
 
     /// `relu(conv(x) + bias)`, by Winograd where it applies.
     fn forward_relu(&self, x: &Features) -> Features {
         assert_eq!(x.c, self.cin, "input channels");
-        match &self.winograd {
-            Some(wg) => {
-                let (h, w, data) = wg.forward_relu(&x.data, x.h, x.w, &self.bias);
-                Features { h, w, c: self.cout, data }
-            }
-            None => self.forward_relu_im2col(x),
+        let Some(wg) = &self.winograd else { return self.forward_relu_im2col(x) };
+        if self.stride == 1 {
+            let (h, w, data) = wg.forward_relu(&x.data, x.h, x.w, &self.bias);
+            return Features { h, w, c: self.cout, data };
         }
+        // Space-to-depth of the zero-padded input, just large enough for the oh x ow
+        // outputs of the stride-1 kernel of side ⌈k/s⌉.
+        let (k, s, p, cin) = (self.k, self.stride, self.pad, self.cin);
+        let oh = (x.h + 2 * p - k) / s + 1;
+        let ow = (x.w + 2 * p - k) / s + 1;
+        let ks = k.div_ceil(s);
+        let (hs, ws, cs) = (oh + ks - 1, ow + ks - 1, s * s * cin);
+        let mut d = scratch::take(hs * ws * cs);
+        d.par_chunks_mut(ws * cs).enumerate().for_each(|(ys, row)| {
+            for (xs, px) in row.chunks_exact_mut(cs).enumerate() {
+                for (dy, dst) in px.chunks_exact_mut(s * cin).enumerate() {
+                    let iy = (ys * s + dy) as isize - p as isize;
+                    let ix = (xs * s) as isize - p as isize;
+                    let dx0 = (-ix).clamp(0, s as isize) as usize;
+                    let dx1 = (x.w as isize - ix).clamp(dx0 as isize, s as isize) as usize;
+                    if iy < 0 || iy >= x.h as isize || dx0 == dx1 {
+                        dst.fill(0.0);
+                        continue;
+                    }
+                    let src = ((iy as usize * x.w) as isize + ix + dx0 as isize) as usize * cin;
+                    dst[..dx0 * cin].fill(0.0);
+                    dst[dx0 * cin..dx1 * cin]
+                        .copy_from_slice(&x.data[src..src + (dx1 - dx0) * cin]);
+                    dst[dx1 * cin..].fill(0.0);
+                }
+            }
+        });
+        let (h, w, data) = wg.forward_relu(&d, hs, ws, &self.bias);
+        scratch::give(d);
+        debug_assert_eq!((h, w), (oh, ow));
+        Features { h, w, c: self.cout, data }
     }
 
     /// `relu(conv(x) + bias)` by im2col and GEMM.
@@ -396,6 +452,35 @@ mod tests {
                 fast.data.iter().zip(&slow.data).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
             eprintln!("winograd k{k}: max error {err:.3e} of peak {peak:.3}");
             assert!(err <= 1e-5 * peak, "k{k}: max error {err} vs peak {peak}");
+        }
+    }
+
+    /// conv1's space-to-depth Winograd form (11x11, stride 4, padding 2) agrees with
+    /// im2col, with image sides that leave 0 to 3 rows past the last window.
+    #[test]
+    fn strided_winograd_matches_im2col() {
+        let (cin, cout, k) = (3, 16, 11);
+        let mut s = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+        };
+        let weight: Vec<f32> = (0..cout * cin * k * k).map(|_| next() * 0.05).collect();
+        let bias: Vec<f32> = (0..cout).map(|_| 0.1 * next()).collect();
+        let conv = Conv::new(&ConvWeights { cin, cout, k, weight, bias }, 4, 2);
+        assert!(conv.winograd.is_some());
+        for (h, w) in [(31, 34), (40, 33)] {
+            let data = (0..h * w * cin).map(|_| next() * 2.0).collect();
+            let x = Features { h, w, c: cin, data };
+            let (fast, slow) = (conv.forward_relu(&x), conv.forward_relu_im2col(&x));
+            assert_eq!((fast.h, fast.w, fast.c), (slow.h, slow.w, slow.c));
+            let peak = slow.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let err =
+                fast.data.iter().zip(&slow.data).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            eprintln!("space-to-depth winograd {h}x{w}: max error {err:.3e} of peak {peak:.3}");
+            assert!(err <= 1e-5 * peak, "{h}x{w}: max error {err} vs peak {peak}");
         }
     }
 
