@@ -14,7 +14,7 @@
 //!
 //! Feature maps and the large convolution buffers come from a process-wide pool of
 //! recycled buffers ([`scratch`]): fresh multi-megabyte allocations are new pages that the
-//! kernel faults in and clears on every call, which took a quarter of the network's time.
+//! kernel faults in and clears on every call.
 
 use std::sync::Mutex;
 
@@ -482,6 +482,39 @@ mod tests {
             eprintln!("space-to-depth winograd {h}x{w}: max error {err:.3e} of peak {peak:.3}");
             assert!(err <= 1e-5 * peak, "{h}x{w}: max error {err} vs peak {peak}");
         }
+    }
+
+    /// The spatial map is bitwise the same on 1 and 3 threads (random AlexNet-shaped
+    /// weights, so no installed weights are needed).
+    #[test]
+    fn spatial_map_does_not_depend_on_the_thread_count() {
+        let mut s = 0x0123_4567_89AB_CDEFu64;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let convs = super::super::weights::CONV_SHAPES
+            .iter()
+            .map(|&(cin, cout, k)| {
+                let scale = 2.0 / ((k * k * cin) as f32).sqrt();
+                let weight = (0..cout * cin * k * k).map(|_| (next() - 0.5) * scale).collect();
+                ConvWeights { cin, cout, k, weight, bias: (0..cout).map(|_| 0.0).collect() }
+            })
+            .collect::<Vec<_>>();
+        let lins = convs.iter().map(|c| (0..c.cout).map(|_| next() * 0.1).collect()).collect();
+        let net = Network::new(&AlexWeights { convs, lins });
+        let (w, h) = (45, 38);
+        let a: Vec<f32> = (0..w * h * 3).map(|_| next()).collect();
+        let b: Vec<f32> = (0..w * h * 3).map(|_| next()).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| net.spatial_map(&a, &b, w, h))
+        };
+        let one = run(1);
+        assert!(one.iter().any(|v| *v > 0.0));
+        assert_eq!(one, run(3));
     }
 
     #[test]

@@ -251,19 +251,32 @@ fn transform(
     let q = src.len() / (cols * c);
     let out = &mut out[..rows * q * c];
     out.fill(0.0);
-    for i in 0..rows {
-        for a in 0..cols {
-            let coef = t[i * cols + a];
-            if coef == 0.0 {
-                continue;
+    let axpy = |o: &mut [f32], s: &[f32], coef: f32| {
+        for (o, s) in o.iter_mut().zip(s) {
+            *o += coef * s;
+        }
+    };
+    match side {
+        // Whole rows `[q, c]` at once.
+        Side::Left => {
+            for (i, o) in out.chunks_exact_mut(q * c).enumerate() {
+                for (a, s) in src.chunks_exact(q * c).enumerate() {
+                    let coef = t[i * cols + a];
+                    if coef != 0.0 {
+                        axpy(o, s, coef);
+                    }
+                }
             }
-            for b in 0..q {
-                let (s, o) = match side {
-                    Side::Left => ((a * q + b) * c, (i * q + b) * c),
-                    Side::Right => ((b * cols + a) * c, (b * rows + i) * c),
-                };
-                for (o, s) in out[o..o + c].iter_mut().zip(&src[s..s + c]) {
-                    *o += coef * s;
+        }
+        Side::Right => {
+            for (o, s) in out.chunks_exact_mut(rows * c).zip(src.chunks_exact(cols * c)) {
+                for (i, o) in o.chunks_exact_mut(c).enumerate() {
+                    for (a, s) in s.chunks_exact(c).enumerate() {
+                        let coef = t[i * cols + a];
+                        if coef != 0.0 {
+                            axpy(o, s, coef);
+                        }
+                    }
                 }
             }
         }
