@@ -1,6 +1,7 @@
 //! `usplat4d bench metrics`: per-image timings of PSNR, SSIM and LPIPS on synthetic
 //! `size x size` images, and optionally of `evaluate` over a temporary scene of N eval
-//! images (the synthetic benchmark has 11 cameras x 121 frames = 1,331). Build with
+//! images (the synthetic benchmark has 11 cameras x 121 frames = 1,331). Each line gives
+//! the median wall time and the mean process CPU time (all threads). Build with
 //! `--release` for meaningful numbers.
 
 use std::time::Instant;
@@ -74,16 +75,44 @@ fn test_image(size: usize, channels: usize, seed: u64, noise: f32) -> Image {
     Image { width: size, height: size, channels, data }.quantized()
 }
 
-/// Median seconds of `repeats` runs of `f`.
-fn median_secs(repeats: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<f64> {
+/// Process CPU time (user + system, all threads) in seconds from `/proc/self/stat`,
+/// assuming Linux's USER_HZ = 100 (10 ms resolution); `None` elsewhere. On a busy shared
+/// machine wall time overstates the cost; CPU time is what an idle one would spend.
+fn cpu_secs() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+/// Wall and CPU time of a run, seconds.
+struct Timing {
+    wall: f64,
+    cpu: Option<f64>,
+}
+
+impl Timing {
+    /// `"W ms wall, C ms CPU"` per item, for `items` items.
+    fn per(&self, items: usize) -> String {
+        let n = items.max(1) as f64;
+        let cpu = self.cpu.map_or("-".into(), |c| format!("{:.1}", c * 1e3 / n));
+        format!("{:9.2} ms wall {cpu:>8} ms CPU", self.wall * 1e3 / n)
+    }
+}
+
+/// Median wall seconds and mean CPU seconds of `repeats` runs of `f`.
+fn time_runs(repeats: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<Timing> {
     let mut t = Vec::with_capacity(repeats);
+    let cpu0 = cpu_secs();
     for _ in 0..repeats.max(1) {
         let start = Instant::now();
         f()?;
         t.push(start.elapsed().as_secs_f64());
     }
+    let cpu = cpu_secs().zip(cpu0).map(|(b, a)| (b - a) / t.len() as f64);
     t.sort_by(f64::total_cmp);
-    Ok(t[t.len() / 2])
+    Ok(Timing { wall: t[t.len() / 2], cpu })
 }
 
 /// Run the benchmark.
@@ -93,17 +122,17 @@ pub fn run(p: &BenchMetricsParams, ctx: &Context) -> anyhow::Result<()> {
     let b = test_image(n, 3, 2, 0.3);
     let threads = rayon::current_num_threads();
     println!("bench metrics: {n}x{n} images, median of {r}, {threads} threads");
-    let t = median_secs(r, || psnr(&a, &b, None).map(drop).map_err(Into::into))?;
-    println!("psnr   {:9.2} ms/image", t * 1e3);
-    let t = median_secs(r, || ssim(&a, &b, None).map(drop).map_err(Into::into))?;
-    println!("ssim   {:9.2} ms/image", t * 1e3);
+    let t = time_runs(r, || psnr(&a, &b, None).map(drop).map_err(Into::into))?;
+    println!("psnr   {}/image", t.per(1));
+    let t = time_runs(r, || ssim(&a, &b, None).map(drop).map_err(Into::into))?;
+    println!("ssim   {}/image", t.per(1));
     let mask: Vec<f32> = (0..n * n).map(|i| if i % n < n / 2 { 1.0 } else { 0.0 }).collect();
-    let t = median_secs(r, || ssim(&a, &b, Some(&mask)).map(drop).map_err(Into::into))?;
-    println!("mssim  {:9.2} ms/image", t * 1e3);
+    let t = time_runs(r, || ssim(&a, &b, Some(&mask)).map(drop).map_err(Into::into))?;
+    println!("mssim  {}/image", t.per(1));
     let lpips = match Lpips::load_default() {
         Ok(l) => {
-            let t = median_secs(r, || l.distance(&a, &b, None).map(drop).map_err(Into::into))?;
-            println!("lpips  {:9.2} ms/image", t * 1e3);
+            let t = time_runs(r, || l.distance(&a, &b, None).map(drop).map_err(Into::into))?;
+            println!("lpips  {}/image", t.per(1));
             Some(l)
         }
         Err(e @ WeightsError::Missing { .. }) => {
@@ -120,14 +149,18 @@ pub fn run(p: &BenchMetricsParams, ctx: &Context) -> anyhow::Result<()> {
         for c in scene.eval() {
             write_png(&renders.join(&c.image_path), &img)?;
         }
-        let start = Instant::now();
-        let rows = evaluate_images(&scene, &renders, "bench", lpips.as_ref(), MaskMode::Auto, ctx)?;
-        let secs = start.elapsed().as_secs_f64();
+        let mut rows = 0;
+        let t = time_runs(1, || {
+            rows = evaluate_images(&scene, &renders, "bench", lpips.as_ref(), MaskMode::Auto, ctx)?
+                .len();
+            Ok(())
+        })?;
+        let cpu = t.cpu.map_or("-".into(), |c| format!("{c:.1}"));
         println!(
-            "evaluate {} images ({}): {secs:.1} s ({:.1} ms/image)",
-            rows.len(),
+            "evaluate {rows} images ({}): {:.1} s wall, {cpu} s CPU; {}/image",
             if lpips.is_some() { "psnr, ssim, lpips" } else { "psnr, ssim" },
-            secs * 1e3 / rows.len() as f64
+            t.wall,
+            t.per(rows)
         );
     }
     Ok(())

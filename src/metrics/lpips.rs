@@ -5,11 +5,12 @@
 //! the user cache ([`weights::default_path`]).
 //!
 //! Submodules: [`pickle`] (a minimal pickle VM), [`weights`] (checkpoint, safetensors,
-//! hashes), [`network`] (the network itself).
+//! hashes), [`network`] (the network itself), [`winograd`] (its fast convolutions).
 
 pub mod network;
 pub mod pickle;
 pub mod weights;
+pub mod winograd;
 
 use std::path::{Path, PathBuf};
 
@@ -146,7 +147,7 @@ impl Lpips {
         if w < network::MIN_SIDE || h < network::MIN_SIDE {
             return Err(Error::TooSmall { what: "lpips", w, h, min: network::MIN_SIDE });
         }
-        let masked = |img: &Image| -> Vec<f32> {
+        fn masked<'a>(img: &'a Image, mask: Option<&[f32]>) -> std::borrow::Cow<'a, [f32]> {
             match mask {
                 Some(m) => img
                     .data
@@ -154,10 +155,10 @@ impl Lpips {
                     .zip(m)
                     .flat_map(|(p, m)| p.iter().map(move |v| v * m))
                     .collect(),
-                None => img.data.clone(),
+                None => img.data.as_slice().into(),
             }
-        };
-        Ok(self.net.spatial_map(&masked(a), &masked(b), w, h))
+        }
+        Ok(self.net.spatial_map(&masked(a, mask), &masked(b, mask), w, h))
     }
 
     /// LPIPS of `a` against `b`: the mean of the spatial map, or with `mask` DyCheck's

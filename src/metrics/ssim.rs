@@ -16,7 +16,9 @@
 //! Without a mask (all ones) every weight `11 / m'` is 1 and this is the standard SSIM of
 //! Wang et al. with a valid-mode Gaussian window (as `dm_pix.ssim` computes it).
 //! Arithmetic is f64; the three channels are computed in parallel (rayon) and summed in
-//! channel order.
+//! channel order. Each channel streams through the image once: the horizontal pass of the
+//! five signals (a, b, a², b², ab) fills a ring of 11 rows from which the vertical pass and
+//! the map are computed, so memory stays `O(W)` and nothing is allocated per row.
 
 use rayon::prelude::*;
 
@@ -53,52 +55,62 @@ pub fn ssim(a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<f64> {
         return Err(Error::TooSmall { what: "ssim", w, h, min: WINDOW });
     }
     let blur = Blur::new(w, h, mask);
-    let c1 = K1 * K1;
-    let c2 = K2 * K2;
-    let channel = |c: usize| -> f64 {
-        let x: Vec<f64> = a.data.iter().skip(c).step_by(3).map(|v| *v as f64).collect();
-        let y: Vec<f64> = b.data.iter().skip(c).step_by(3).map(|v| *v as f64).collect();
-        let mu0 = blur.apply(&x);
-        let mu1 = blur.apply(&y);
-        let e00 = blur.apply(&x.iter().map(|v| v * v).collect::<Vec<_>>());
-        let e11 = blur.apply(&y.iter().map(|v| v * v).collect::<Vec<_>>());
-        let e01 = blur.apply(&x.iter().zip(&y).map(|(p, q)| p * q).collect::<Vec<_>>());
-        let mut total = 0.0f64;
-        for i in 0..mu0.len() {
-            let (m0, m1) = (mu0[i], mu1[i]);
-            let s00 = (e00[i] - m0 * m0).max(0.0);
-            let s11 = (e11[i] - m1 * m1).max(0.0);
-            let s01 = e01[i] - m0 * m1;
-            let s01 = sign(s01) * (s00 * s11).sqrt().min(s01.abs());
-            let numer = (2.0 * m0 * m1 + c1) * (2.0 * s01 + c2);
-            let denom = (m0 * m0 + m1 * m1 + c1) * (s00 + s11 + c2);
-            total += numer / denom;
-        }
-        total
-    };
     // Channels in parallel, summed in channel order (deterministic).
-    let sums: Vec<f64> = (0..3).into_par_iter().map(channel).collect();
+    let sums: Vec<f64> = (0..3).into_par_iter().map(|c| blur.channel_sum(a, b, c)).collect();
     let total: f64 = sums.iter().sum();
     Ok(total / (3 * (w - WINDOW + 1) * (h - WINDOW + 1)) as f64)
 }
 
-/// `jnp.sign`: −1, 0 or 1.
-fn sign(v: f64) -> f64 {
-    if v > 0.0 {
-        1.0
-    } else if v < 0.0 {
-        -1.0
-    } else {
-        0.0
+/// Outputs computed together by [`filter`] (in registers).
+const BLOCK: usize = 8;
+
+/// `out[x] = Σ_k f[k]·src[k][x]` for every `x` of `out`, summing the taps in order
+/// k = 0..10 from 0; blocks of [`BLOCK`] outputs are accumulated in registers.
+fn filter(f: &[f64; WINDOW], src: &[&[f64]; WINDOW], out: &mut [f64]) {
+    let mut blocks = out.chunks_exact_mut(BLOCK);
+    let mut x = 0;
+    for o in &mut blocks {
+        let mut acc = [0.0f64; BLOCK];
+        for (f, s) in f.iter().zip(src) {
+            for (a, v) in acc.iter_mut().zip(&s[x..x + BLOCK]) {
+                *a += f * v;
+            }
+        }
+        o.copy_from_slice(&acc);
+        x += BLOCK;
+    }
+    for (i, o) in blocks.into_remainder().iter_mut().enumerate() {
+        *o = f.iter().zip(src).fold(0.0, |a, (f, s)| a + f * s[x + i]);
     }
 }
 
+/// The SSIM map value of one pixel from its five blurred statistics
+/// `[μ0, μ1, E(a²), E(b²), E(ab)]`, with DyCheck's clipping of the (co)variances.
+fn ssim_value(s: [f64; 5]) -> f64 {
+    let (c1, c2) = (K1 * K1, K2 * K2);
+    let [m0, m1, e00, e11, e01] = s;
+    let s00 = (e00 - m0 * m0).max(0.0);
+    let s11 = (e11 - m1 * m1).max(0.0);
+    let s01 = e01 - m0 * m1;
+    // sign(σ01)·min(√(σ00σ11), |σ01|), branch-free (0 stays 0).
+    let s01 = (s00 * s11).sqrt().min(s01.abs()).copysign(s01);
+    let numer = (2.0 * m0 * m1 + c1) * (2.0 * s01 + c2);
+    let denom = (m0 * m0 + m1 * m1 + c1) * (s00 + s11 + c2);
+    numer / denom
+}
+
 /// The two-pass partial convolution of one image size and mask, with the mask sums of
-/// both passes precomputed.
+/// both passes precomputed (`None` without a mask: every factor is then exactly 1 and the
+/// multiplications are skipped, which changes no bit of the result).
 struct Blur {
     w: usize,
     h: usize,
     f: [f64; WINDOW],
+    masks: Option<Masks>,
+}
+
+/// The mask and the per-pass factors of a masked [`Blur`].
+struct Masks {
     /// `[H, W]` pixel mask of the first pass.
     mask: Vec<f64>,
     /// `[H, W − 10]` first-pass factor `11 / m'` (0 where `m' = 0`).
@@ -107,67 +119,109 @@ struct Blur {
     scale2: Vec<f64>,
 }
 
+/// The five signals blurred for SSIM: `a`, `b`, `a²`, `b²`, `a·b`.
+const SIGNALS: usize = 5;
+
 impl Blur {
     fn new(w: usize, h: usize, mask: Option<&[f32]>) -> Blur {
-        let mask: Vec<f64> = match mask {
-            Some(m) => m.iter().map(|v| *v as f64).collect(),
-            None => vec![1.0; w * h],
-        };
-        let (w1, h1) = (w - WINDOW + 1, h - WINDOW + 1);
-        let n = WINDOW as f64;
-        let factor = |s: f64| if s != 0.0 { n / s } else { 0.0 };
-        let mut scale1 = vec![0.0; h * w1];
-        for y in 0..h {
-            for x in 0..w1 {
-                let s: f64 = mask[y * w + x..y * w + x + WINDOW].iter().sum();
-                scale1[y * w1 + x] = factor(s);
+        let masks = mask.map(|m| {
+            let mask: Vec<f64> = m.iter().map(|v| *v as f64).collect();
+            let (w1, h1) = (w - WINDOW + 1, h - WINDOW + 1);
+            let n = WINDOW as f64;
+            let factor = |s: f64| if s != 0.0 { n / s } else { 0.0 };
+            let mut scale1 = vec![0.0; h * w1];
+            for y in 0..h {
+                for x in 0..w1 {
+                    let s: f64 = mask[y * w + x..y * w + x + WINDOW].iter().sum();
+                    scale1[y * w1 + x] = factor(s);
+                }
             }
-        }
-        let mut scale2 = vec![0.0; h1 * w1];
-        for y in 0..h1 {
-            for x in 0..w1 {
-                let s: f64 =
-                    (0..WINDOW).map(|k| (scale1[(y + k) * w1 + x] != 0.0) as u8 as f64).sum();
-                scale2[y * w1 + x] = factor(s);
+            let mut scale2 = vec![0.0; h1 * w1];
+            for y in 0..h1 {
+                for x in 0..w1 {
+                    let s: f64 =
+                        (0..WINDOW).map(|k| (scale1[(y + k) * w1 + x] != 0.0) as u8 as f64).sum();
+                    scale2[y * w1 + x] = factor(s);
+                }
             }
-        }
-        Blur { w, h, f: window(), mask, scale1, scale2 }
+            Masks { mask, scale1, scale2 }
+        });
+        Blur { w, h, f: window(), masks }
     }
 
-    /// `blur(z, m)` of `z` `[H, W]`: `[H − 10, W − 10]`.
-    fn apply(&self, z: &[f64]) -> Vec<f64> {
+    /// The sum of the SSIM map of channel `c` of `a` against `b`, streamed row by row: the
+    /// horizontal pass of the five signals fills a ring of 11 rows `[11, 5, W − 10]` from
+    /// which each output row's vertical pass is taken. Every output sums its taps in order
+    /// k = 0..10 and the map is summed in row-major order.
+    fn channel_sum(&self, a: &Image, b: &Image, c: usize) -> f64 {
         let (w, h) = (self.w, self.h);
-        let (w1, h1) = (w - WINDOW + 1, h - WINDOW + 1);
-        let zm: Vec<f64> = z.iter().zip(&self.mask).map(|(v, m)| v * m).collect();
-        // Loops run over k outside and x inside (vectorisable); each output still sums its
-        // taps in order k = 0..10. Where the mask sum is 0 the factor is 0, and so is the
-        // output.
-        let mut pass1 = vec![0.0; h * w1];
+        let w1 = w - WINDOW + 1;
+        let mut input = vec![0.0f64; SIGNALS * w];
+        let mut ring = vec![0.0f64; WINDOW * SIGNALS * w1];
+        let mut out = vec![0.0f64; SIGNALS * w1];
+        let mut map = vec![0.0f64; w1];
+        let mut total = 0.0f64;
         for y in 0..h {
-            let row = &zm[y * w..(y + 1) * w];
-            let acc = &mut pass1[y * w1..(y + 1) * w1];
-            for (k, f) in self.f.iter().enumerate() {
-                for (a, v) in acc.iter_mut().zip(&row[k..k + w1]) {
-                    *a += f * v;
+            // The five input rows `[5, W]`, masked.
+            let (ra, rb) =
+                (&a.data[y * w * 3..(y + 1) * w * 3], &b.data[y * w * 3..(y + 1) * w * 3]);
+            let (sx, rest) = input.split_at_mut(w);
+            let (sy, rest) = rest.split_at_mut(w);
+            let (sxx, rest) = rest.split_at_mut(w);
+            let (syy, sxy) = rest.split_at_mut(w);
+            for x in 0..w {
+                let (p, q) = (ra[3 * x + c] as f64, rb[3 * x + c] as f64);
+                (sx[x], sy[x], sxx[x], syy[x], sxy[x]) = (p, q, p * p, q * q, p * q);
+            }
+            if let Some(m) = &self.masks {
+                let mrow = &m.mask[y * w..(y + 1) * w];
+                for row in input.chunks_exact_mut(w) {
+                    for (v, m) in row.iter_mut().zip(mrow) {
+                        *v *= m;
+                    }
                 }
             }
-            for (a, s) in acc.iter_mut().zip(&self.scale1[y * w1..(y + 1) * w1]) {
-                *a *= s;
-            }
-        }
-        let mut out = vec![0.0; h1 * w1];
-        for y in 0..h1 {
-            let acc = &mut out[y * w1..(y + 1) * w1];
-            for (k, f) in self.f.iter().enumerate() {
-                for (a, v) in acc.iter_mut().zip(&pass1[(y + k) * w1..(y + k + 1) * w1]) {
-                    *a += f * v;
+            // Horizontal pass into the ring slot of row y.
+            let slot = &mut ring[(y % WINDOW) * SIGNALS * w1..(y % WINDOW + 1) * SIGNALS * w1];
+            for (acc, row) in slot.chunks_exact_mut(w1).zip(input.chunks_exact(w)) {
+                filter(&self.f, &std::array::from_fn(|k| &row[k..k + w1]), acc);
+                if let Some(m) = &self.masks {
+                    for (a, s) in acc.iter_mut().zip(&m.scale1[y * w1..(y + 1) * w1]) {
+                        *a *= s;
+                    }
                 }
             }
-            for (a, s) in acc.iter_mut().zip(&self.scale2[y * w1..(y + 1) * w1]) {
-                *a *= s;
+            if y + 1 < WINDOW {
+                continue;
+            }
+            // Vertical pass of output row oy = y − 10 over ring rows oy..=y.
+            let oy = y + 1 - WINDOW;
+            for (s, acc) in out.chunks_exact_mut(w1).enumerate() {
+                let src = std::array::from_fn(|k| {
+                    let r = (oy + k) % WINDOW;
+                    &ring[(r * SIGNALS + s) * w1..(r * SIGNALS + s + 1) * w1]
+                });
+                filter(&self.f, &src, acc);
+                if let Some(m) = &self.masks {
+                    for (a, s) in acc.iter_mut().zip(&m.scale2[oy * w1..(oy + 1) * w1]) {
+                        *a *= s;
+                    }
+                }
+            }
+            for x in 0..w1 {
+                map[x] = ssim_value([
+                    out[x],
+                    out[w1 + x],
+                    out[2 * w1 + x],
+                    out[3 * w1 + x],
+                    out[4 * w1 + x],
+                ]);
+            }
+            for v in &map {
+                total += v;
             }
         }
-        out
+        total
     }
 }
 
@@ -221,6 +275,76 @@ mod tests {
             }
         }
         total / count as f64
+    }
+
+    /// DyCheck's masked SSIM written directly from its definition on whole arrays:
+    /// `blur(z, m)` per pass as `where(m' ≠ 0, conv(z·m, f)·11 / m', 0)`.
+    fn naive_masked_ssim(a: &Image, b: &Image, mask: &[f32]) -> f64 {
+        let f = window();
+        let (w, h) = (a.width, a.height);
+        let (w1, h1) = (w - WINDOW + 1, h - WINDOW + 1);
+        // One pass along x (`dx = 1`) or y over `[rows, cols]` arrays.
+        let pass = |z: &[f64], m: &[f64], cols: usize, horizontal: bool| -> (Vec<f64>, Vec<f64>) {
+            let rows = z.len() / cols;
+            let (orows, ocols) = if horizontal { (rows, cols - 10) } else { (rows - 10, cols) };
+            let (mut out, mut valid) = (vec![0.0; orows * ocols], vec![0.0; orows * ocols]);
+            for r in 0..orows {
+                for q in 0..ocols {
+                    let at =
+                        |k: usize| if horizontal { r * cols + q + k } else { (r + k) * cols + q };
+                    let conv: f64 = (0..WINDOW).map(|k| f[k] * z[at(k)] * m[at(k)]).sum();
+                    let msum: f64 = (0..WINDOW).map(|k| m[at(k)]).sum();
+                    if msum != 0.0 {
+                        out[r * ocols + q] = conv * WINDOW as f64 / msum;
+                        valid[r * ocols + q] = 1.0;
+                    }
+                }
+            }
+            (out, valid)
+        };
+        let m: Vec<f64> = mask.iter().map(|v| *v as f64).collect();
+        let blur = |z: Vec<f64>| -> Vec<f64> {
+            let (p1, v1) = pass(&z, &m, w, true);
+            pass(&p1, &v1, w1, false).0
+        };
+        let mut total = 0.0;
+        for c in 0..3 {
+            let x: Vec<f64> = (0..w * h).map(|i| a.data[3 * i + c] as f64).collect();
+            let y: Vec<f64> = (0..w * h).map(|i| b.data[3 * i + c] as f64).collect();
+            let prod = |p: &[f64], q: &[f64]| p.iter().zip(q).map(|(p, q)| p * q).collect();
+            let stats = [
+                blur(x.clone()),
+                blur(y.clone()),
+                blur(prod(&x, &x)),
+                blur(prod(&y, &y)),
+                blur(prod(&x, &y)),
+            ];
+            for i in 0..w1 * h1 {
+                total += ssim_value(stats.clone().map(|s| s[i]));
+            }
+        }
+        total / (3 * w1 * h1) as f64
+    }
+
+    #[test]
+    fn masked_matches_a_naive_direct_implementation() {
+        let (w, h) = (23, 17);
+        let a = noise(w, h, 9);
+        let mut b = noise(w, h, 10);
+        for (q, p) in b.data.iter_mut().zip(&a.data) {
+            *q = 0.7 * *p + 0.3 * *q;
+        }
+        // A soft mask with an empty region wider than the window.
+        let mask: Vec<f32> = (0..w * h)
+            .map(|i| match (i % w, i / w) {
+                (x, _) if x < 12 => 0.0,
+                (x, y) => ((x * 3 + y * 5) % 7) as f32 / 6.0,
+            })
+            .collect();
+        let got = ssim(&a, &b, Some(&mask)).unwrap();
+        let want = naive_masked_ssim(&a, &b, &mask);
+        assert!((got - want).abs() < 1e-9, "{got} vs {want}");
+        assert!(got > 0.1 && got < 0.999, "{got}");
     }
 
     #[test]

@@ -2,15 +2,27 @@
 //! scaling layer, AlexNet `features` up to relu5, channel-normalised squared differences,
 //! 1x1 linear layers and the bilinear (align_corners=False) upsampling of the spatial map.
 //!
-//! Feature maps are `[h, w, C]` row-major. A convolution is im2col + matrix product: for a
-//! fixed-size chunk of output positions (rayon over chunks, so results do not depend on
-//! the thread count) the patch matrix `[P, k·k·Cin]` (order ky, kx, ci) is multiplied by
-//! the weights `[k·k·Cin, Cout]` (HWIO) with `ndarray`'s blocked GEMM (matrixmultiply).
+//! Feature maps are `[h, w, C]` row-major. Every convolution runs in the Winograd domain
+//! ([`super::winograd`]), which needs about a quarter of the multiplications: conv2 (5x5)
+//! by F(3x3, 5x5), conv3-5 (3x3) by F(4x4, 3x3), and conv1 (11x11, stride 4) as the
+//! equivalent 3x3 stride-1 convolution over the space-to-depth input (48 channels, the
+//! kernel zero-padded to 12x12) by F(4x4, 3x3). The reference path, im2col + matrix
+//! product, remains for other kernels and for the tests: for a fixed-size chunk of output
+//! positions (rayon over chunks, so results do not depend on the thread count) the patch
+//! matrix `[P, k·k·Cin]` (order ky, kx, ci) is multiplied by the weights `[k·k·Cin, Cout]`
+//! (HWIO) with `ndarray`'s blocked GEMM (matrixmultiply).
+//!
+//! Feature maps and the large convolution buffers come from a process-wide pool of
+//! recycled buffers ([`scratch`]): fresh multi-megabyte allocations are new pages that the
+//! kernel faults in and clears on every call.
+
+use std::sync::Mutex;
 
 use ndarray::{ArrayView2, ArrayViewMut2, linalg::general_mat_mul};
 use rayon::prelude::*;
 
 use super::weights::{AlexWeights, ConvWeights};
+use super::winograd::{self, WinogradConv};
 
 /// `shift` of LPIPS's scaling layer (inputs in [−1, 1]).
 pub const SHIFT: [f32; 3] = [-0.030, -0.088, -0.188];
@@ -36,7 +48,9 @@ pub struct Features {
     pub data: Vec<f32>,
 }
 
-/// One convolution ready for im2col: weights `[k·k·Cin, Cout]` (HWIO).
+/// One convolution ready for im2col (weights `[k·k·Cin, Cout]`, HWIO) and, where the
+/// kernel (stride 1) or its space-to-depth form (stride s) has Winograd transforms, in the
+/// Winograd domain.
 struct Conv {
     cin: usize,
     cout: usize,
@@ -45,6 +59,10 @@ struct Conv {
     pad: usize,
     hwio: Vec<f32>,
     bias: Vec<f32>,
+    /// The Winograd form: of the convolution itself (stride 1) or, for stride `s`, of the
+    /// equivalent stride-1 convolution with kernel side `⌈k/s⌉` over the space-to-depth
+    /// input `[⌈H/s⌉, ⌈W/s⌉, s·s·Cin]` (channel `(dy·s + dx)·Cin + ci`).
+    winograd: Option<WinogradConv>,
 }
 
 impl Conv {
@@ -61,11 +79,76 @@ impl Conv {
                 }
             }
         }
-        Conv { cin, cout, k, stride, pad, hwio, bias: w.bias.clone() }
+        let winograd = if stride == 1 {
+            winograd::tile_for_kernel(k).map(|m| WinogradConv::new(&w.weight, cin, cout, k, pad, m))
+        } else {
+            // Kernel [Cout, s·s·Cin, k', k'] of the space-to-depth form: tap (a, b) of
+            // channel (dy, dx, ci) is tap (a·s + dy, b·s + dx) of the original (0 beyond k).
+            let (s, ks) = (stride, k.div_ceil(stride));
+            winograd::tile_for_kernel(ks).map(|m| {
+                let cs = s * s * cin;
+                let mut ws = vec![0.0f32; cout * cs * ks * ks];
+                for co in 0..cout {
+                    for ci in 0..cin {
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let (a, dy, b, dx) = (ky / s, ky % s, kx / s, kx % s);
+                                let c2 = (dy * s + dx) * cin + ci;
+                                ws[((co * cs + c2) * ks + a) * ks + b] =
+                                    w.weight[((co * cin + ci) * k + ky) * k + kx];
+                            }
+                        }
+                    }
+                }
+                WinogradConv::new(&ws, cs, cout, ks, 0, m)
+            })
+        };
+        Conv { cin, cout, k, stride, pad, hwio, bias: w.bias.clone(), winograd }
     }
 
-    /// `relu(conv(x) + bias)`.
+    /// `relu(conv(x) + bias)`, by Winograd where it applies.
     fn forward_relu(&self, x: &Features) -> Features {
+        assert_eq!(x.c, self.cin, "input channels");
+        let Some(wg) = &self.winograd else { return self.forward_relu_im2col(x) };
+        if self.stride == 1 {
+            let (h, w, data) = wg.forward_relu(&x.data, x.h, x.w, &self.bias);
+            return Features { h, w, c: self.cout, data };
+        }
+        // Space-to-depth of the zero-padded input, just large enough for the oh x ow
+        // outputs of the stride-1 kernel of side ⌈k/s⌉.
+        let (k, s, p, cin) = (self.k, self.stride, self.pad, self.cin);
+        let oh = (x.h + 2 * p - k) / s + 1;
+        let ow = (x.w + 2 * p - k) / s + 1;
+        let ks = k.div_ceil(s);
+        let (hs, ws, cs) = (oh + ks - 1, ow + ks - 1, s * s * cin);
+        let mut d = scratch::take(hs * ws * cs);
+        d.par_chunks_mut(ws * cs).enumerate().for_each(|(ys, row)| {
+            for (xs, px) in row.chunks_exact_mut(cs).enumerate() {
+                for (dy, dst) in px.chunks_exact_mut(s * cin).enumerate() {
+                    let iy = (ys * s + dy) as isize - p as isize;
+                    let ix = (xs * s) as isize - p as isize;
+                    let dx0 = (-ix).clamp(0, s as isize) as usize;
+                    let dx1 = (x.w as isize - ix).clamp(dx0 as isize, s as isize) as usize;
+                    if iy < 0 || iy >= x.h as isize || dx0 == dx1 {
+                        dst.fill(0.0);
+                        continue;
+                    }
+                    let src = ((iy as usize * x.w) as isize + ix + dx0 as isize) as usize * cin;
+                    dst[..dx0 * cin].fill(0.0);
+                    dst[dx0 * cin..dx1 * cin]
+                        .copy_from_slice(&x.data[src..src + (dx1 - dx0) * cin]);
+                    dst[dx1 * cin..].fill(0.0);
+                }
+            }
+        });
+        let (h, w, data) = wg.forward_relu(&d, hs, ws, &self.bias);
+        scratch::give(d);
+        debug_assert_eq!((h, w), (oh, ow));
+        Features { h, w, c: self.cout, data }
+    }
+
+    /// `relu(conv(x) + bias)` by im2col and GEMM.
+    fn forward_relu_im2col(&self, x: &Features) -> Features {
         assert_eq!(x.c, self.cin, "input channels");
         let (k, s, p) = (self.k, self.stride, self.pad);
         let oh = (x.h + 2 * p - k) / s + 1;
@@ -74,27 +157,30 @@ impl Conv {
         let cout = self.cout;
         let weights =
             ArrayView2::from_shape((kk, cout), &self.hwio).expect("weights are [k·k·Cin, Cout]");
-        let mut out = vec![0.0f32; oh * ow * cout];
+        let mut out = scratch::take(oh * ow * cout);
         out.par_chunks_mut(CHUNK * cout).enumerate().for_each(|(chunk, out)| {
             let p0 = chunk * CHUNK;
             let np = out.len() / cout;
-            let mut col = vec![0.0f32; np * kk];
-            for r in 0..np {
+            let mut col = scratch::take(np * kk);
+            let cin = self.cin;
+            for (r, patch) in col.chunks_exact_mut(kk).enumerate() {
                 let (oy, ox) = ((p0 + r) / ow, (p0 + r) % ow);
-                for ky in 0..k {
+                // Input columns ox·s − p .. +k, clipped to the image: kx in kx0..kx1.
+                let ix = (ox * s) as isize - p as isize;
+                let kx0 = (-ix).clamp(0, k as isize) as usize;
+                let kx1 = (x.w as isize - ix).clamp(kx0 as isize, k as isize) as usize;
+                for (ky, dst) in patch.chunks_exact_mut(k * cin).enumerate() {
                     let iy = (oy * s + ky) as isize - p as isize;
-                    if iy < 0 || iy >= x.h as isize {
+                    if iy < 0 || iy >= x.h as isize || kx0 == kx1 {
+                        dst.fill(0.0);
                         continue;
                     }
-                    for kx in 0..k {
-                        let ix = (ox * s + kx) as isize - p as isize;
-                        if ix < 0 || ix >= x.w as isize {
-                            continue;
-                        }
-                        let src = (iy as usize * x.w + ix as usize) * self.cin;
-                        let dst = r * kk + (ky * k + kx) * self.cin;
-                        col[dst..dst + self.cin].copy_from_slice(&x.data[src..src + self.cin]);
-                    }
+                    let src = (iy as usize * x.w) as isize + ix;
+                    let src = (src + kx0 as isize) as usize * cin;
+                    dst[..kx0 * cin].fill(0.0);
+                    dst[kx0 * cin..kx1 * cin]
+                        .copy_from_slice(&x.data[src..src + (kx1 - kx0) * cin]);
+                    dst[kx1 * cin..].fill(0.0);
                 }
             }
             for row in out.chunks_exact_mut(cout) {
@@ -107,6 +193,7 @@ impl Conv {
             for v in out.iter_mut() {
                 *v = v.max(0.0);
             }
+            scratch::give(col);
         });
         Features { h: oh, w: ow, c: cout, data: out }
     }
@@ -116,7 +203,8 @@ impl Conv {
 fn max_pool(x: &Features) -> Features {
     let oh = (x.h - 3) / 2 + 1;
     let ow = (x.w - 3) / 2 + 1;
-    let mut out = vec![f32::NEG_INFINITY; oh * ow * x.c];
+    let mut out = scratch::take(oh * ow * x.c);
+    out.fill(f32::NEG_INFINITY);
     for oy in 0..oh {
         for ox in 0..ow {
             let dst = &mut out[(oy * ow + ox) * x.c..(oy * ow + ox + 1) * x.c];
@@ -150,19 +238,27 @@ impl Network {
     /// (mapped to [−1, 1], then through the scaling layer). `H, W ≥ MIN_SIDE`.
     pub fn taps(&self, rgb: &[f32], w: usize, h: usize) -> Vec<Features> {
         assert!(w >= MIN_SIDE && h >= MIN_SIDE, "image {w}x{h} below {MIN_SIDE}");
-        let data = rgb
-            .chunks_exact(3)
-            .flat_map(|p| (0..3).map(move |c| ((2.0 * p[c] - 1.0) - SHIFT[c]) / SCALE[c]))
-            .collect();
-        let mut x = Features { h, w, c: 3, data };
-        let mut taps = Vec::with_capacity(5);
-        for (i, conv) in self.convs.iter().enumerate() {
-            x = conv.forward_relu(&x);
-            taps.push(x.clone());
-            if i < 2 {
-                x = max_pool(&x);
+        let mut data = scratch::take(rgb.len());
+        for (d, p) in data.chunks_exact_mut(3).zip(rgb.chunks_exact(3)) {
+            for c in 0..3 {
+                d[c] = ((2.0 * p[c] - 1.0) - SHIFT[c]) / SCALE[c];
             }
         }
+        let mut x = Features { h, w, c: 3, data };
+        let mut taps: Vec<Features> = Vec::with_capacity(5);
+        for (i, conv) in self.convs.iter().enumerate() {
+            let input = match i {
+                0 => &x,
+                1 | 2 => {
+                    let pooled = max_pool(&taps[i - 1]);
+                    scratch::give(std::mem::replace(&mut x, pooled).data);
+                    &x
+                }
+                _ => &taps[i - 1],
+            };
+            taps.push(conv.forward_relu(input));
+        }
+        scratch::give(x.data);
         taps
     }
 
@@ -191,7 +287,55 @@ impl Network {
                 *m += v;
             }
         }
+        for f in ta.into_iter().chain(tb) {
+            scratch::give(f.data);
+        }
         map
+    }
+}
+
+/// A process-wide pool of `f32` buffers for feature maps and convolution scratch.
+pub(super) mod scratch {
+    use super::Mutex;
+
+    /// The pooled buffers.
+    static POOL: Mutex<Vec<Vec<f32>>> = Mutex::new(Vec::new());
+    /// Most bytes the pool keeps (the largest buffers of one 512x512 pair are about
+    /// 17 MB; two pairs run at once on two threads).
+    const MAX_BYTES: usize = 192 << 20;
+
+    /// A buffer of `len` values with **unspecified contents** (the caller overwrites
+    /// every value): the smallest pooled one that fits, or a new one.
+    pub fn take(len: usize) -> Vec<f32> {
+        let mut pool = POOL.lock().unwrap_or_else(|e| e.into_inner());
+        let best = (0..pool.len())
+            .filter(|&i| pool[i].capacity() >= len)
+            .min_by_key(|&i| pool[i].capacity());
+        match best {
+            Some(i) => {
+                let mut v = pool.swap_remove(i);
+                drop(pool);
+                v.truncate(len);
+                v.resize(len, 0.0);
+                v
+            }
+            None => {
+                drop(pool);
+                vec![0.0; len]
+            }
+        }
+    }
+
+    /// Return a buffer to the pool; the smallest buffers are dropped beyond
+    /// [`MAX_BYTES`].
+    pub fn give(v: Vec<f32>) {
+        let mut pool = POOL.lock().unwrap_or_else(|e| e.into_inner());
+        pool.push(v);
+        let bytes = |p: &[Vec<f32>]| p.iter().map(|v| v.capacity() * 4).sum::<usize>();
+        while bytes(&pool) > MAX_BYTES {
+            let smallest = (0..pool.len()).min_by_key(|&i| pool[i].capacity()).expect("non-empty");
+            pool.swap_remove(smallest);
+        }
     }
 }
 
@@ -279,6 +423,98 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The Winograd path of conv2-5 agrees with im2col at AlexNet's kernel sizes, channel
+    /// counts of the same order and weight magnitudes like the trained ones.
+    #[test]
+    fn winograd_matches_im2col() {
+        for (k, pad, cin, cout, side) in [(5, 2, 64, 48, 21), (3, 1, 96, 64, 15)] {
+            let mut s = 0x2545_F491_4F6C_DD1Du64;
+            let mut next = move || {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                (s >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+            };
+            let scale = 1.0 / ((k * k * cin) as f32).sqrt();
+            let weight: Vec<f32> = (0..cout * cin * k * k).map(|_| next() * scale).collect();
+            let bias: Vec<f32> = (0..cout).map(|_| 0.1 * next()).collect();
+            let cw = ConvWeights { cin, cout, k, weight, bias };
+            let conv = Conv::new(&cw, 1, pad);
+            assert!(conv.winograd.is_some());
+            let data = (0..side * side * cin).map(|_| next().max(0.0) * 4.0).collect();
+            let x = Features { h: side, w: side, c: cin, data };
+            let (fast, slow) = (conv.forward_relu(&x), conv.forward_relu_im2col(&x));
+            assert_eq!((fast.h, fast.w, fast.c), (slow.h, slow.w, slow.c));
+            let peak = slow.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let err =
+                fast.data.iter().zip(&slow.data).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            eprintln!("winograd k{k}: max error {err:.3e} of peak {peak:.3}");
+            assert!(err <= 1e-5 * peak, "k{k}: max error {err} vs peak {peak}");
+        }
+    }
+
+    /// conv1's space-to-depth Winograd form (11x11, stride 4, padding 2) agrees with
+    /// im2col, with image sides that leave 0 to 3 rows past the last window.
+    #[test]
+    fn strided_winograd_matches_im2col() {
+        let (cin, cout, k) = (3, 16, 11);
+        let mut s = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+        };
+        let weight: Vec<f32> = (0..cout * cin * k * k).map(|_| next() * 0.05).collect();
+        let bias: Vec<f32> = (0..cout).map(|_| 0.1 * next()).collect();
+        let conv = Conv::new(&ConvWeights { cin, cout, k, weight, bias }, 4, 2);
+        assert!(conv.winograd.is_some());
+        for (h, w) in [(31, 34), (40, 33)] {
+            let data = (0..h * w * cin).map(|_| next() * 2.0).collect();
+            let x = Features { h, w, c: cin, data };
+            let (fast, slow) = (conv.forward_relu(&x), conv.forward_relu_im2col(&x));
+            assert_eq!((fast.h, fast.w, fast.c), (slow.h, slow.w, slow.c));
+            let peak = slow.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let err =
+                fast.data.iter().zip(&slow.data).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            eprintln!("space-to-depth winograd {h}x{w}: max error {err:.3e} of peak {peak:.3}");
+            assert!(err <= 1e-5 * peak, "{h}x{w}: max error {err} vs peak {peak}");
+        }
+    }
+
+    /// The spatial map is bitwise the same on 1 and 3 threads (random AlexNet-shaped
+    /// weights, so no installed weights are needed).
+    #[test]
+    fn spatial_map_does_not_depend_on_the_thread_count() {
+        let mut s = 0x0123_4567_89AB_CDEFu64;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let convs = super::super::weights::CONV_SHAPES
+            .iter()
+            .map(|&(cin, cout, k)| {
+                let scale = 2.0 / ((k * k * cin) as f32).sqrt();
+                let weight = (0..cout * cin * k * k).map(|_| (next() - 0.5) * scale).collect();
+                ConvWeights { cin, cout, k, weight, bias: (0..cout).map(|_| 0.0).collect() }
+            })
+            .collect::<Vec<_>>();
+        let lins = convs.iter().map(|c| (0..c.cout).map(|_| next() * 0.1).collect()).collect();
+        let net = Network::new(&AlexWeights { convs, lins });
+        let (w, h) = (45, 38);
+        let a: Vec<f32> = (0..w * h * 3).map(|_| next()).collect();
+        let b: Vec<f32> = (0..w * h * 3).map(|_| next()).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| net.spatial_map(&a, &b, w, h))
+        };
+        let one = run(1);
+        assert!(one.iter().any(|v| *v > 0.0));
+        assert_eq!(one, run(3));
     }
 
     #[test]
