@@ -6,7 +6,8 @@
 //! with runs of unreliable (φ) frames. For each profile the bench times
 //! [`keynodes::select`](super::keynodes::select) and [`edges::build`](super::edges::build),
 //! checks the accelerated non-key assignment against brute force on a sample of non-keys,
-//! and prints one table row. Peak memory is the process's VmHWM from /proc/self/status.
+//! and prints one table row (wall and CPU seconds, user + system over all threads, of
+//! each stage). Peak memory is the process's VmHWM from /proc/self/status.
 
 use std::time::Instant;
 
