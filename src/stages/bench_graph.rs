@@ -6,7 +6,8 @@
 //! with runs of unreliable (φ) frames. For each profile the bench times
 //! [`keynodes::select`](super::keynodes::select) and [`edges::build`](super::edges::build),
 //! checks the accelerated non-key assignment against brute force on a sample of non-keys,
-//! and prints one table row. Peak memory is the process's VmHWM from /proc/self/status.
+//! and prints one table row (wall and CPU seconds, user + system over all threads, of
+//! each stage). Peak memory is the process's VmHWM from /proc/self/status.
 
 use std::time::Instant;
 
@@ -161,6 +162,16 @@ pub fn peak_rss_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
+/// CPU time (user + system, all threads) of this process so far, seconds, if the kernel
+/// reports it (/proc/self/stat, in USER_HZ = 100 ticks per second).
+pub fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
 /// `usplat4d bench graph`.
 pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
     if cfg!(debug_assertions) {
@@ -178,9 +189,9 @@ pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
         t0.elapsed().as_secs_f64()
     ));
     println!(
-        "| profile | N | T | keys | keynodes s | edges s | total s | edges | exact (sampled non-keys) | threads |"
+        "| profile | N | T | keys | keynodes s | edges s | total s | keynodes CPU s | edges CPU s | edges | exact (sampled non-keys) | threads |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for &profile in &p.profiles {
         let mut ks = KeynodeSettings::defaults(profile);
         if let Some(v) = p.voxel_size {
@@ -190,19 +201,28 @@ pub fn run(p: &BenchGraphParams, ctx: &Context) -> anyhow::Result<()> {
         if let Some(f) = p.metric_form {
             es.metric_form = f;
         }
+        let c1 = cpu_seconds();
         let t1 = Instant::now();
         let keys = keynodes::select(&tracks, &ks);
         let t_keys = t1.elapsed().as_secs_f64();
+        let c2 = cpu_seconds();
         let t2 = Instant::now();
         let e = edges::build(&tracks, &keys, &rotations, &es)?;
         let t_edges = t2.elapsed().as_secs_f64();
+        let c3 = cpu_seconds();
+        let cpu = |a: Option<f64>, b: Option<f64>| match (a, b) {
+            (Some(a), Some(b)) => format!("{:.2}", b - a),
+            _ => "-".to_string(),
+        };
         let (checked, ok) = check_sample(&tracks, &keys, &rotations, &es, &e, p.check);
         println!(
-            "| {profile:?} | {} | {} | {} | {t_keys:.2} | {t_edges:.2} | {:.2} | {} | {ok}/{checked} | {} |",
+            "| {profile:?} | {} | {} | {} | {t_keys:.2} | {t_edges:.2} | {:.2} | {} | {} | {} | {ok}/{checked} | {} |",
             tracks.len(),
             tracks.num_frames,
             keys.num_keys(),
             t_keys + t_edges,
+            cpu(c1, c2),
+            cpu(c2, c3),
             e.len(),
             rayon::current_num_threads()
         );

@@ -31,7 +31,8 @@
 //!
 //! All searches are exact (see [`super::graph::search`]); nothing of size T × N_nonkey ×
 //! N_key is materialised. Memory: the tracks (`N·T·17` bytes, see [`super::graph`]), two
-//! copies of the keys' `[K, T]` data, T kiddo trees of ≤ K points, and the edges.
+//! copies of the keys' `[K, T]` data, T kiddo trees of ≤ K points, the Eq. 8 key tree
+//! (< K/2 nodes of 28·T bytes, and the keys again at 16·T bytes each), and the edges.
 
 use std::path::PathBuf;
 
@@ -390,7 +391,11 @@ pub fn build(
     let nonkey_edges: Vec<Vec<(u32, f64)>> = match s.nonkey_assign_mode {
         NonkeyAssignMode::ArgminSumMahalanobis => {
             let trees = search::frame_trees(&metric);
-            let leaves = search::leaves(&metric, 32, s.metric_form);
+            let tree = search::key_tree(
+                &metric,
+                std::env::var("LEAF").map_or(4, |v| v.parse().unwrap()),
+                s.metric_form,
+            );
             nonkey_rows
                 .par_iter()
                 .map(|&i| {
@@ -399,7 +404,7 @@ pub fn build(
                     let u: Vec<f32> = (0..nt).map(|t| tracks.u(i, t)).collect();
                     let th = keys.t_hat[i] as usize;
                     let cand = trees[th].nearest(q[th], 2).0;
-                    match search::argmin_sum(&metric, &leaves, &q, &u, &cand) {
+                    match search::argmin_sum(&metric, &tree, &q, &u, &cand) {
                         Some((_, j)) => {
                             let mut dst = vec![j];
                             dst.extend(neighbours[j as usize].iter().map(|c| c.1));

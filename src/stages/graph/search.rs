@@ -18,18 +18,27 @@
 //!   t (unweighted metrics: cost ≥ R²). When the k-th exact cost is below that bound (with
 //!   a 1e-5 relative margin on R² for kiddo's own rounding) no unseen key can enter the top
 //!   k; otherwise m doubles, up to all keys.
-//! - [`argmin_sum`] (Eq. 8): keys are grouped in leaves; per frame t a leaf stores the
-//!   bounding box of the q of its members counted at t and their u_b. For such a member l,
-//!   dist(q_i, box_t) ≤ ‖q_i − q_l‖, so c_t = s(dist, √(u_i + u_b)) bounds its frame-t term
-//!   s(‖Δq‖, √(u_i + u_l)); its other terms are ≥ 0. Hence a key's cost is at least
-//!   Σ_t [l counted at t]·c_t, and every member's cost at least the leaf bound
-//!   Σ_t [all members counted at t]·c_t. Leaves are visited by increasing bound and the
-//!   search stops at the first whose bound exceeds the best cost so far; inside a leaf, keys
-//!   whose own bound exceeds it are skipped. Bounds are summed in another order than the
-//!   exact cost, so they are compared with a 1e-3 relative margin (f32 rounding of T ≤ 10⁴
-//!   non-negative terms is below 10⁻³); exact partial sums stop once above the best.
+//! - [`argmin_sum`] (Eq. 8): keys sit in a binary tree ([`key_tree`]: a k-d tree of the
+//!   trajectories, median splits along the frame and axis of widest spread, leaves of ≤ 8
+//!   keys). Per frame t a node stores the bounding box (in q) of its members counted at t
+//!   and their u_b. For a member l counted at t, dist(q_t, box_t) ≤ ‖q_t − q_{l,t}‖, so
+//!   c_t = s(dist, √(u_t + u_b,t)) ≤ s(‖Δq‖, √(u_t + u_{l,t})), l's frame-t term; all
+//!   terms are ≥ 0. Hence every member's cost is at least the node bound Σ_{t∈F} c_t for
+//!   any set F of frames where all members are counted (large nodes, > 32 keys, use only
+//!   the query's 32 heaviest frames; smaller ones all such frames). A child's members are
+//!   the parent's, so max(parent, child) bounds them too. Nodes are visited best-first by
+//!   increasing bound; the search stops when the smallest pending bound exceeds the best
+//!   cost so far, so every key left unvisited has a cost above it and cannot be the
+//!   argmin, even on a tie. In a leaf, a key is evaluated exactly ([`sum_cost`], the
+//!   reference's own float operations and order) unless a partial sum of its terms
+//!   already exceeds the best cost. Bounds and partial sums run over chunks of 8 frames
+//!   (vectorised, in a structure-of-arrays layout), the query's heaviest chunks first
+//!   (for `weight`, where the query is unreliable), with one square root per term
+//!   (√(x·v) for √x·√v): they differ from exact terms by rounding only, so they prune
+//!   with a 10⁻³ relative margin (f32 rounding of T ≤ 10⁴ non-negative terms stays
+//!   below it). The final comparison uses exact costs and the `(cost, key)` order.
 //!   Eq. 8 sums over all frames (the paper's Σ_{t=0}^{T−1}) whatever the form. Which
-//!   frames a leaf counts only tightens the bounds: `inverse` counts the frames where the
+//!   frames a node counts only tightens the bounds: `inverse` counts the frames where the
 //!   member is eligible (reliable), since an unreliable frame's term (u = φ) is ≈ 0 and
 //!   would only inflate the box; `weight` counts every frame, since there an unreliable
 //!   frame gives a large term (the paper's intent: a rarely seen key is a poor anchor).
@@ -248,203 +257,346 @@ pub fn argmin_sum_brute(
     best
 }
 
-/// Keys grouped spatially, with per-frame bounding boxes (in q) and bounding u, for the
-/// Eq. 8 search in one metric form.
+/// Relative margin of the Eq. 8 bounds: a bound `b` prunes a best cost `c` only when
+/// `b·(1 − MARGIN) > c`. Bounds are summed in another order than [`sum_cost`] and with
+/// one square root per term; f32 rounding of T ≤ 10⁴ non-negative terms, each off by a
+/// few ulps, stays far below 10⁻³.
+const MARGIN: f32 = 1e-3;
+
+/// Frames per chunk: bounds and partial sums are computed 8 frames at a time
+/// (vectorisable), and compared with the best cost once per chunk.
+const CHUNK: usize = 8;
+
+/// Nodes with more members than this are bounded on their first [`BIG_CHUNKS`] chunks
+/// only (a weaker but valid bound; near the root the boxes are wide anyway).
+const BIG_NODE: usize = 32;
+
+/// Chunks of the bound of a node larger than [`BIG_NODE`].
+const BIG_CHUNKS: usize = 4;
+
+/// Coordinates of a node's per-frame bounds in [`KeyTree::bounds`].
+const LO: usize = 0;
+const HI: usize = 3;
+const UB: usize = 6;
+const ARRAYS: usize = 7;
+
+/// One node of a [`KeyTree`]: members `order[start..end]`, children (none for a leaf).
+#[derive(Debug, Clone, Copy)]
+struct Node {
+    start: u32,
+    end: u32,
+    children: Option<(u32, u32)>,
+}
+
+/// A binary tree over the keys' trajectories, each node with per-frame bounding boxes (in
+/// q) and bounding u, for the Eq. 8 search in one metric form.
 #[derive(Debug, Clone)]
-pub struct Leaves {
+pub struct KeyTree {
     /// The metric form the bounds are for.
     form: MetricForm,
-    /// Member keys of each leaf.
-    keys: Vec<Vec<u32>>,
-    /// Per leaf `[T]`: bounding box of the members counted at t (empty: lo > hi).
-    lo: Vec<Vec<[f32; 3]>>,
-    hi: Vec<Vec<[f32; 3]>>,
-    /// Per leaf `[T]`: u_b of the members counted at t (u_min for `weight`, u_max for
-    /// `inverse`).
-    u_b: Vec<Vec<f32>>,
-    /// Per leaf `[members, T]`: 1 where the member is counted at t, else 0.
-    mask: Vec<Vec<f32>>,
-    /// Per leaf `[T]`: 1 where every member is counted at t, else 0.
-    all: Vec<Vec<f32>>,
+    /// T rounded up to whole chunks, `T_p`.
+    padded: usize,
+    /// Keys, permuted so that every node holds a contiguous range `[K]`.
+    order: Vec<u32>,
+    /// Nodes, the root first.
+    nodes: Vec<Node>,
+    /// Per node, seven arrays of `[T_p]` (`[nodes, 7, T_p]`): the box's lo x, y, z, hi x,
+    /// y, z, and u_b. Frames where not every member is counted (and padding frames) hold
+    /// the unbounded box (−∞, +∞) and u_b = 1, so their bound term is 0.
+    bounds: Vec<f32>,
+    /// The keys' trajectories in the layout of [`Query`] (`[K, 4, T_p]`: x, y, z, u), for
+    /// the partial sums.
+    keys: Vec<f32>,
 }
 
-/// Group the keys into leaves of at most `size` by recursive median splits of their
-/// time-averaged positions along the widest axis, with the bounds of the metric `form`:
-/// a member is counted at t when eligible there (`inverse`) or always (`weight`), see the
-/// module doc.
-pub fn leaves(kf: &KeyFrames, size: usize, form: MetricForm) -> Leaves {
-    let counted = |i: usize| form == MetricForm::Weight || kf.eligible[i];
+/// Build the [`KeyTree`] of the keys for the metric `form`: recursive median splits, each
+/// along the coordinate (frame t, axis k) of q in which the node's members spread widest
+/// (a k-d tree of the trajectories in R^{3T}, so keys that stay close over all frames
+/// share nodes), down to leaves of at most `leaf_size` keys. A member is counted at t when
+/// eligible there (`inverse`) or always (`weight`), see the module doc. Memory:
+/// `28·T` bytes per node, fewer than 4K/`leaf_size` nodes.
+pub fn key_tree(kf: &KeyFrames, leaf_size: usize, form: MetricForm) -> KeyTree {
     let nt = kf.num_frames;
-    let mean: Vec<[f32; 3]> = (0..kf.num_keys)
-        .map(|l| {
-            let mut m = [0.0f64; 3];
-            for t in 0..nt {
-                let p = kf.q[kf.at(l, t)];
-                (0..3).for_each(|k| m[k] += p[k] as f64);
-            }
-            m.map(|v| (v / nt.max(1) as f64) as f32)
-        })
-        .collect();
-    let mut groups = Vec::new();
-    let mut stack = vec![(0..kf.num_keys as u32).collect::<Vec<u32>>()];
-    while let Some(mut g) = stack.pop() {
-        if g.len() <= size.max(1) {
-            groups.push(g);
+    let padded = nt.div_ceil(CHUNK) * CHUNK;
+    let counted = |i: usize| form == MetricForm::Weight || kf.eligible[i];
+    let mut tree = KeyTree {
+        form,
+        padded,
+        order: (0..kf.num_keys as u32).collect(),
+        nodes: Vec::new(),
+        bounds: Vec::new(),
+        keys: Vec::new(),
+    };
+    if kf.num_keys == 0 {
+        return tree;
+    }
+    tree.nodes.push(Node { start: 0, end: kf.num_keys as u32, children: None });
+    let mut stack = vec![0usize];
+    while let Some(id) = stack.pop() {
+        let Node { start, end, .. } = tree.nodes[id];
+        let members = &mut tree.order[start as usize..end as usize];
+        if members.len() <= leaf_size.max(1) || nt == 0 {
             continue;
         }
-        let axis = (0..3)
-            .max_by(|&a, &b| {
-                let ext = |k: usize| {
-                    let (lo, hi) =
-                        g.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &l| {
-                            (lo.min(mean[l as usize][k]), hi.max(mean[l as usize][k]))
-                        });
-                    hi - lo
-                };
-                ext(a).total_cmp(&ext(b))
-            })
-            .unwrap_or(0);
-        g.sort_unstable_by(|a, b| {
-            mean[*a as usize][axis].total_cmp(&mean[*b as usize][axis]).then(a.cmp(b))
-        });
-        let right = g.split_off(g.len() / 2);
-        stack.push(right);
-        stack.push(g);
-    }
-    let mut out = Leaves {
-        form,
-        keys: Vec::new(),
-        lo: Vec::new(),
-        hi: Vec::new(),
-        u_b: Vec::new(),
-        mask: Vec::new(),
-        all: Vec::new(),
-    };
-    for g in groups {
-        let mut lo = vec![[f32::INFINITY; 3]; nt];
-        let mut hi = vec![[f32::NEG_INFINITY; 3]; nt];
-        let mut u_min = vec![f32::INFINITY; nt];
-        let mut u_max = vec![0.0f32; nt];
-        let mut mask = Vec::with_capacity(g.len() * nt);
-        for &l in &g {
-            for t in 0..nt {
-                let i = kf.at(l as usize, t);
-                mask.push(if counted(i) { 1.0 } else { 0.0 });
-                if !counted(i) {
-                    continue;
+        let (mut widest, mut axis) = (f32::NEG_INFINITY, (0, 0));
+        for t in 0..nt {
+            for k in 0..3 {
+                let (lo, hi) = members.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |a, &l| {
+                    let v = kf.q[kf.at(l as usize, t)][k];
+                    (a.0.min(v), a.1.max(v))
+                });
+                if hi - lo > widest {
+                    (widest, axis) = (hi - lo, (t, k));
                 }
-                for k in 0..3 {
-                    lo[t][k] = lo[t][k].min(kf.q[i][k]);
-                    hi[t][k] = hi[t][k].max(kf.q[i][k]);
-                }
-                u_min[t] = u_min[t].min(kf.u[i]);
-                u_max[t] = u_max[t].max(kf.u[i]);
             }
         }
-        let all = (0..nt)
-            .map(|t| if g.iter().all(|&l| counted(kf.at(l as usize, t))) { 1.0 } else { 0.0 })
-            .collect();
-        let u_b = u_min.iter().zip(&u_max).map(|(&a, &b)| form.bound_u(a, b)).collect();
-        out.keys.push(g);
-        out.lo.push(lo);
-        out.hi.push(hi);
-        out.u_b.push(u_b);
-        out.mask.push(mask);
-        out.all.push(all);
+        let mid = members.len() / 2;
+        let coord = |l: u32| kf.q[kf.at(l as usize, axis.0)][axis.1];
+        members.select_nth_unstable_by(mid, |&a, &b| coord(a).total_cmp(&coord(b)).then(a.cmp(&b)));
+        let (a, b) = (tree.nodes.len(), tree.nodes.len() + 1);
+        tree.nodes.push(Node { start, end: start + mid as u32, children: None });
+        tree.nodes.push(Node { start: start + mid as u32, end, children: None });
+        tree.nodes[id].children = Some((a as u32, b as u32));
+        stack.extend([b, a]);
     }
-    out
+    let bounds: Vec<Vec<f32>> = tree
+        .nodes
+        .par_iter()
+        .map(|node| {
+            let members = &tree.order[node.start as usize..node.end as usize];
+            let mut b = vec![0.0f32; ARRAYS * padded];
+            for t in 0..padded {
+                let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+                let (mut u_min, mut u_max, mut all) = (f32::INFINITY, 0.0f32, t < nt);
+                for &l in members.iter().filter(|_| t < nt) {
+                    let i = kf.at(l as usize, t);
+                    if !counted(i) {
+                        all = false;
+                        continue;
+                    }
+                    for k in 0..3 {
+                        lo[k] = lo[k].min(kf.q[i][k]);
+                        hi[k] = hi[k].max(kf.q[i][k]);
+                    }
+                    u_min = u_min.min(kf.u[i]);
+                    u_max = u_max.max(kf.u[i]);
+                }
+                for k in 0..3 {
+                    b[(LO + k) * padded + t] = if all { lo[k] } else { f32::NEG_INFINITY };
+                    b[(HI + k) * padded + t] = if all { hi[k] } else { f32::INFINITY };
+                }
+                b[UB * padded + t] = if all { form.bound_u(u_min, u_max) } else { 1.0 };
+            }
+            b
+        })
+        .collect();
+    tree.bounds = bounds.concat();
+    tree.keys = (0..kf.num_keys)
+        .flat_map(|l| {
+            let traj = &kf.q[kf.at(l, 0)..kf.at(l, 0) + nt];
+            let u = &kf.u[kf.at(l, 0)..kf.at(l, 0) + nt];
+            Query::new(traj, u, padded).soa
+        })
+        .collect();
+    tree
 }
 
-/// Per-frame lower bounds `[T]` of the Eq. 8 terms of the members of leaf `g` counted at
-/// t: s(dist(q_t, box_t), √(u_t + u_b,t)) (0 where no member is counted), and the leaf's
-/// bound (their sum over the frames where every member is counted); `None` as soon as that
-/// bound exceeds `stop` (then no member can beat it).
-fn leaf_terms(
-    lv: &Leaves,
-    g: usize,
-    q: &[[f32; 3]],
-    u: &[f32],
-    stop: f32,
-) -> Option<(f32, Vec<f32>)> {
-    let (lo, hi, ub, all) = (&lv.lo[g], &lv.hi[g], &lv.u_b[g], &lv.all[g]);
-    let mut terms = Vec::with_capacity(q.len());
-    let mut leaf_lb = 0.0f32;
-    for t in 0..q.len() {
-        let c = if lo[t][0] > hi[t][0] {
-            0.0
+/// A query trajectory in chunked structure-of-arrays form `[4, T_p]` (x, y, z, u; padding
+/// frames at the origin with u = 1).
+struct Query {
+    soa: Vec<f32>,
+    padded: usize,
+}
+
+impl Query {
+    fn new(q: &[[f32; 3]], u: &[f32], padded: usize) -> Self {
+        let mut soa = vec![0.0f32; 4 * padded];
+        soa[3 * padded..].fill(1.0);
+        for t in 0..q.len() {
+            for k in 0..3 {
+                soa[k * padded + t] = q[t][k];
+            }
+            soa[3 * padded + t] = u[t];
+        }
+        Query { soa, padded }
+    }
+
+    /// Array `a` (0..3: x, y, z, u) of chunk `c`.
+    #[inline(always)]
+    fn get(&self, a: usize, c: usize) -> &[f32; CHUNK] {
+        let s = a * self.padded + c * CHUNK;
+        self.soa[s..s + CHUNK].try_into().expect("chunk")
+    }
+}
+
+/// Σ over one chunk of √s(‖x − clamp(x, lo, hi)‖², u + u_b): the bound terms of a node's
+/// chunk (or, with lo = hi = a key's positions and u_b its u, the key's terms up to
+/// rounding). `WEIGHT` picks the form's s.
+#[inline(always)]
+fn chunk_terms<const WEIGHT: bool>(
+    q: [&[f32; CHUNK]; 4],
+    lo: [&[f32; CHUNK]; 3],
+    hi: [&[f32; CHUNK]; 3],
+    ub: &[f32; CHUNK],
+) -> f32 {
+    let mut acc = [0.0f32; CHUNK];
+    for j in 0..CHUNK {
+        let mut d2 = 0.0f32;
+        for k in 0..3 {
+            let d = q[k][j] - q[k][j].max(lo[k][j]).min(hi[k][j]);
+            d2 += d * d;
+        }
+        let v = q[3][j] + ub[j];
+        acc[j] = if WEIGHT { d2 * v } else { d2 / v }.sqrt();
+    }
+    acc.iter().sum()
+}
+
+impl KeyTree {
+    /// Lower bound of the Eq. 8 cost of every member of `node` for the query: Σ over the
+    /// frames where all members are counted of √s(dist(q_t, box_t)², u_t + u_b,t) (one
+    /// square root: the term s(dist, √(u_t + u_b,t)) of the module doc up to rounding,
+    /// which the margin covers), over the query's `chunks` (in that order; only the first
+    /// [`BIG_CHUNKS`] for nodes larger than [`BIG_NODE`]). `None` as soon as the sum
+    /// exceeds `stop` (with the margin; then no member can beat `stop`).
+    fn bound(&self, node: usize, q: &Query, chunks: &[u32], stop: f32) -> Option<f32> {
+        let n = self.nodes[node];
+        let chunks = if (n.end - n.start) as usize > BIG_NODE {
+            &chunks[..chunks.len().min(BIG_CHUNKS)]
         } else {
-            let c = [0, 1, 2].map(|k| q[t][k].clamp(lo[t][k], hi[t][k]));
-            lv.form.scale(dist2(q[t], c).sqrt(), (u[t] + ub[t]).sqrt())
+            chunks
         };
-        terms.push(c);
-        leaf_lb += all[t] * c;
-        if leaf_lb * (1.0 - 1e-3) > stop {
-            return None;
+        let p = self.padded;
+        let b = &self.bounds[node * ARRAYS * p..(node + 1) * ARRAYS * p];
+        let arr = |a: usize, c: usize| -> &[f32; CHUNK] {
+            b[a * p + c * CHUNK..a * p + (c + 1) * CHUNK].try_into().expect("chunk")
+        };
+        let mut s = 0.0f32;
+        for &c in chunks {
+            let c = c as usize;
+            let qs = [q.get(0, c), q.get(1, c), q.get(2, c), q.get(3, c)];
+            let lo = [arr(LO, c), arr(LO + 1, c), arr(LO + 2, c)];
+            let hi = [arr(HI, c), arr(HI + 1, c), arr(HI + 2, c)];
+            s += match self.form {
+                MetricForm::Weight => chunk_terms::<true>(qs, lo, hi, arr(UB, c)),
+                MetricForm::Inverse => chunk_terms::<false>(qs, lo, hi, arr(UB, c)),
+            };
+            if s * (1.0 - MARGIN) > stop {
+                return None;
+            }
         }
+        Some(s)
     }
-    Some((leaf_lb, terms))
 }
 
-/// Σ_t mask_t · c_t with eight accumulators (vectorisable; order differs from
-/// [`sum_cost`], hence the relative margin where it is compared).
-fn masked_sum(mask: &[f32], c: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let (m8, c8) = (mask.chunks_exact(8), c.chunks_exact(8));
-    let (mr, cr) = (m8.remainder(), c8.remainder());
-    for (m, c) in m8.zip(c8) {
-        for k in 0..8 {
-            acc[k] += m[k] * c[k];
-        }
+/// A node waiting in the best-first queue: a lower bound of its members' costs and the
+/// node, ordered by (bound, node) reversed for a min-heap.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Pending(f32, u32);
+
+impl Eq for Pending {}
+
+impl Ord for Pending {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        other.0.total_cmp(&self.0).then(other.1.cmp(&self.1))
     }
-    let tail: f32 = mr.iter().zip(cr).map(|(m, c)| m * c).sum();
-    acc.iter().sum::<f32>() + tail
+}
+
+impl PartialOrd for Pending {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
 }
 
 /// The key of lowest Eq. 8 cost for a query trajectory (`q`, `u` `[T]`) in the metric
-/// form of `lv`, starting from `candidates` (any keys, e.g. kiddo's nearest at the query's
-/// best frame). Equals [`argmin_sum_brute`] (see the module doc for the argument).
+/// form of `tree`, starting from `candidates` (any keys, e.g. kiddo's nearest at the
+/// query's best frame). Equals [`argmin_sum_brute`] (see the module doc for the argument).
 pub fn argmin_sum(
     kf: &KeyFrames,
-    lv: &Leaves,
+    tree: &KeyTree,
     q: &[[f32; 3]],
     u: &[f32],
     candidates: &[u32],
 ) -> Option<(f32, u32)> {
+    let form = tree.form;
     let mut best: Option<(f32, u32)> = None;
-    let consider = |l: u32, best: &mut Option<(f32, u32)>| {
-        let stop = best.map_or(f32::INFINITY, |b| b.0);
-        let c = (sum_cost(kf, q, u, l as usize, stop, lv.form), l);
-        if best.is_none_or(|b| lt(c, b)) {
-            *best = Some(c);
-        }
-    };
     for &l in candidates {
-        consider(l, &mut best);
+        let c = (sum_cost(kf, q, u, l as usize, best.map_or(f32::INFINITY, |b| b.0), form), l);
+        if best.is_none_or(|b| lt(c, b)) {
+            best = Some(c);
+        }
     }
-    let nt = q.len();
-    // A leaf's bound: the frames where all its members are counted. Leaves are visited by
-    // increasing bound; once one exceeds the best cost, so do all that follow.
-    let stop = best.map_or(f32::INFINITY, |b| b.0);
-    let mut order: Vec<(f32, usize, Vec<f32>)> = (0..lv.keys.len())
-        .filter_map(|g| leaf_terms(lv, g, q, u, stop).map(|(lb, terms)| (lb, g, terms)))
+    if tree.nodes.is_empty() {
+        return best;
+    }
+    let query = Query::new(q, u, tree.padded);
+    // Chunks by decreasing weight of the query's own factors, so that partial sums grow
+    // fastest (for `weight`, chunks where the query is unreliable come first).
+    let weight: Vec<f32> = (0..tree.padded / CHUNK)
+        .map(|c| query.get(3, c).iter().map(|&u| form.scale(1.0, u)).sum())
         .collect();
-    order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    for (leaf_lb, g, terms) in order {
-        if best.is_some_and(|b| leaf_lb * (1.0 - 1e-3) > b.0) {
+    let mut chunks: Vec<u32> = (0..weight.len() as u32).collect();
+    chunks.sort_by(|&a, &b| weight[b as usize].total_cmp(&weight[a as usize]).then(a.cmp(&b)));
+    let stop = |best: Option<(f32, u32)>| best.map_or(f32::INFINITY, |b| b.0);
+    let mut queue = std::collections::BinaryHeap::new();
+    if let Some(b) = tree.bound(0, &query, &chunks, stop(best)) {
+        queue.push(Pending(b, 0));
+    }
+    while let Some(Pending(bound, id)) = queue.pop() {
+        if bound * (1.0 - MARGIN) > stop(best) {
             break;
         }
-        for (m, &l) in lv.keys[g].iter().enumerate() {
-            // Lower bound of key l: its counted frames' leaf bounds (other frames
-            // contribute ≥ 0). Summed in another order than `sum_cost`, so compared with a
-            // relative margin far above f32 rounding of T ≤ 10^4 non-negative terms.
-            let lb = masked_sum(&lv.mask[g][m * nt..(m + 1) * nt], &terms);
-            if best.is_some_and(|b| lb * (1.0 - 1e-3) > b.0) {
-                continue;
+        let node = tree.nodes[id as usize];
+        match node.children {
+            Some((a, b)) => {
+                for c in [a, b] {
+                    if let Some(cb) = tree.bound(c as usize, &query, &chunks, stop(best)) {
+                        queue.push(Pending(cb.max(bound), c));
+                    }
+                }
             }
-            consider(l, &mut best);
+            None => {
+                for &l in &tree.order[node.start as usize..node.end as usize] {
+                    if let Some((stop, _)) = best
+                        && tree.key_exceeds(l as usize, &query, &chunks, stop)
+                    {
+                        continue;
+                    }
+                    let c = (sum_cost(kf, q, u, l as usize, f32::INFINITY, form), l);
+                    if best.is_none_or(|b| lt(c, b)) {
+                        best = Some(c);
+                    }
+                }
+            }
         }
     }
     best
+}
+
+impl KeyTree {
+    /// Whether a partial sum of key `l`'s Eq. 8 terms over the query's `chunks` (in that
+    /// order, one square root per term, with the margin) already exceeds `stop`.
+    fn key_exceeds(&self, l: usize, q: &Query, chunks: &[u32], stop: f32) -> bool {
+        let p = self.padded;
+        let key = &self.keys[l * 4 * p..(l + 1) * 4 * p];
+        let arr = |a: usize, c: usize| -> &[f32; CHUNK] {
+            key[a * p + c * CHUNK..a * p + (c + 1) * CHUNK].try_into().expect("chunk")
+        };
+        let mut s = 0.0f32;
+        for &c in chunks {
+            let c = c as usize;
+            let qs = [q.get(0, c), q.get(1, c), q.get(2, c), q.get(3, c)];
+            let pos = [arr(0, c), arr(1, c), arr(2, c)];
+            s += match self.form {
+                MetricForm::Weight => chunk_terms::<true>(qs, pos, pos, arr(3, c)),
+                MetricForm::Inverse => chunk_terms::<false>(qs, pos, pos, arr(3, c)),
+            };
+            if s * (1.0 - MARGIN) > stop {
+                return true;
+            }
+        }
+        false
+    }
 }
 
 /// Squared release cost max_{t: eligible(l, t)} ‖p_t − p_{l,t}‖²; stops once above `stop`
@@ -611,7 +763,7 @@ mod tests {
         {
             let (kf, mats) = random_keys(seed, 150, 12, form);
             let trees = frame_trees(&kf);
-            let lv = leaves(&kf, 8, form);
+            let lv = key_tree(&kf, 4, form);
             let tau: Vec<u32> = (0..kf.num_keys)
                 .map(|l| {
                     (0..kf.num_frames)
@@ -639,6 +791,48 @@ mod tests {
         }
     }
 
+    /// Hard cases of Eq. 8: T not a multiple of the chunk and above the large-node frame
+    /// cap, exact duplicate keys (ties), keys and queries unreliable (u = φ) at every frame,
+    /// a query on top of a key.
+    #[test]
+    fn argmin_sum_equals_brute_force_in_hard_cases() {
+        for form in [MetricForm::Weight, MetricForm::Inverse] {
+            let nt = 45;
+            let (mut kf, mats) = random_keys(7, 160, nt, form);
+            // keys 1..=4 duplicate key 0; keys 5 and 6 are unreliable at every frame
+            for l in 1..=6 {
+                for t in 0..nt {
+                    let (src, dst) = (kf.at(0, t), kf.at(l, t));
+                    if l <= 4 {
+                        kf.q[dst] = kf.q[src];
+                        kf.u[dst] = kf.u[src];
+                        kf.eligible[dst] = kf.eligible[src];
+                    } else {
+                        kf.u[dst] = 1e8;
+                        kf.eligible[dst] = false;
+                    }
+                }
+            }
+            for leaf in [1, 3, 8] {
+                let tree = key_tree(&kf, leaf, form);
+                for qs in 0..30u64 {
+                    let (mut q, mut u) = query(qs + 1000, nt, &mats);
+                    match qs % 5 {
+                        0 => u.fill(1e8),
+                        1 => q = (0..nt).map(|t| kf.q[kf.at(0, t)]).collect(),
+                        2 => q = (0..nt).map(|t| kf.q[kf.at(5, t)]).collect(),
+                        _ => {}
+                    }
+                    let want = argmin_sum_brute(&kf, &q, &u, form);
+                    for cand in [vec![], vec![3], vec![6, 2]] {
+                        let got = argmin_sum(&kf, &tree, &q, &u, &cand);
+                        assert_eq!(got, want, "{form:?} leaf {leaf} query {qs} {cand:?}");
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn ties_are_broken_by_key_index() {
         let kf = KeyFrames {
@@ -655,11 +849,11 @@ mod tests {
         let got = knn_at_frame(&kf, &trees[0], [0.0; 3], 1.0, 0, None, 2, Some(MetricForm::Weight));
         assert_eq!(got, vec![(2.0, 0), (2.0, 1)]);
         assert_eq!(
-            argmin_sum(&kf, &leaves(&kf, 1, MetricForm::Inverse), &[[0.0; 3]], &[1.0], &[2]),
+            argmin_sum(&kf, &key_tree(&kf, 1, MetricForm::Inverse), &[[0.0; 3]], &[1.0], &[2]),
             Some((1.0 / 2f32.sqrt(), 0))
         );
         assert_eq!(
-            argmin_sum(&kf, &leaves(&kf, 1, MetricForm::Weight), &[[0.0; 3]], &[1.0], &[2]),
+            argmin_sum(&kf, &key_tree(&kf, 1, MetricForm::Weight), &[[0.0; 3]], &[1.0], &[2]),
             Some((2f32.sqrt(), 0))
         );
     }
@@ -684,7 +878,7 @@ mod tests {
         for (form, want) in [(MetricForm::Weight, 0), (MetricForm::Inverse, 1)] {
             let brute = argmin_sum_brute(&kf, &q, &u, form).unwrap();
             assert_eq!(brute.1, want, "{form:?}");
-            assert_eq!(argmin_sum(&kf, &leaves(&kf, 1, form), &q, &u, &[]), Some(brute));
+            assert_eq!(argmin_sum(&kf, &key_tree(&kf, 1, form), &q, &u, &[]), Some(brute));
         }
     }
 }
