@@ -75,15 +75,9 @@ fn test_image(size: usize, channels: usize, seed: u64, noise: f32) -> Image {
     Image { width: size, height: size, channels, data }.quantized()
 }
 
-/// Process CPU time (user + system, all threads) in seconds from `/proc/self/stat`,
-/// assuming Linux's USER_HZ = 100 (10 ms resolution); `None` elsewhere. On a busy shared
-/// machine wall time overstates the cost; CPU time is what an idle one would spend.
+/// Process CPU time in seconds ([`crate::render::bench::cpu_ms`]).
 fn cpu_secs() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    let rest = &stat[stat.rfind(')')? + 1..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
-    Some(ticks / 100.0)
+    crate::render::bench::cpu_ms().map(|ms| ms / 1e3)
 }
 
 /// Wall and CPU time of a run, seconds.

@@ -162,14 +162,9 @@ pub fn peak_rss_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
-/// CPU time (user + system, all threads) of this process so far, seconds, if the kernel
-/// reports it (/proc/self/stat, in USER_HZ = 100 ticks per second).
-pub fn cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
-    let utime: f64 = fields.get(11)?.parse().ok()?;
-    let stime: f64 = fields.get(12)?.parse().ok()?;
-    Some((utime + stime) / 100.0)
+/// CPU time of this process so far in seconds ([`crate::render::bench::cpu_ms`]).
+fn cpu_seconds() -> Option<f64> {
+    crate::render::bench::cpu_ms().map(|ms| ms / 1e3)
 }
 
 /// `usplat4d bench graph`.
