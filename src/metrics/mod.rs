@@ -10,6 +10,8 @@
 //! Masks are `[H, W]` values in [0, 1] (1 = the pixel counts), broadcast over channels.
 
 pub mod bench;
+#[cfg(test)]
+mod dycheck_fixture;
 pub mod lpips;
 pub mod psnr;
 pub mod ssim;
