@@ -46,6 +46,8 @@ pub enum Command {
     Segment(crate::stages::segment::SegmentParams),
     /// Image and tracking metrics of renders against a scene.
     Evaluate(crate::stages::evaluate::EvaluateParams),
+    /// One self-contained HTML report of a run: tables, charts, image grids, graph figures.
+    Report(crate::stages::report::ReportParams),
     /// LPIPS weights management.
     #[command(subcommand)]
     Lpips(crate::metrics::lpips::LpipsCommand),
@@ -93,6 +95,7 @@ impl Command {
             Command::Edges(_) => "edges",
             Command::Segment(_) => "segment",
             Command::Evaluate(_) => "evaluate",
+            Command::Report(_) => "report",
             Command::Lpips(_) => "lpips",
             Command::Bench(_) => "bench",
             Command::Pipeline(_) => "pipeline",
@@ -117,6 +120,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Edges(p) => stages::edges::run(&p, ctx),
         Command::Segment(p) => stages::segment::run(&p, ctx),
         Command::Evaluate(p) => stages::evaluate::run(&p, ctx),
+        Command::Report(p) => stages::report::run(&p, ctx),
         Command::Lpips(c) => metrics::lpips::run_command(&c, ctx),
         Command::Bench(BenchCommand::Render(p)) => render::bench::run(&p, ctx),
         Command::Bench(BenchCommand::Graph(p)) => stages::bench_graph::run(&p, ctx),

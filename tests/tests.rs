@@ -12,4 +12,5 @@ mod inspect;
 mod interop;
 mod pipeline;
 mod render;
+mod report;
 mod synth;

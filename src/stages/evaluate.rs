@@ -304,11 +304,16 @@ fn evaluate_one(
 /// The view ranges of the paper's Table 2, degrees (lower bound excluded).
 pub const VIEW_RANGES: [(f32, f32); 3] = [(0.0, 60.0), (60.0, 120.0), (120.0, 180.0)];
 
+/// The angular distance of a camera offset from the training view, in [0°, 180°].
+pub fn angular_distance(offset_deg: f32) -> f32 {
+    let a = offset_deg.rem_euclid(360.0);
+    if a > 180.0 { 360.0 - a } else { a }
+}
+
 /// Index into [`VIEW_RANGES`] of an angle offset (offsets above 180° count as 360° − offset);
 /// `None` for offset 0.
 pub fn view_range(offset_deg: f32) -> Option<usize> {
-    let a = offset_deg.rem_euclid(360.0);
-    let a = if a > 180.0 { 360.0 - a } else { a };
+    let a = angular_distance(offset_deg);
     VIEW_RANGES.iter().position(|(lo, hi)| a > *lo && a <= *hi)
 }
 

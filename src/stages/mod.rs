@@ -8,6 +8,7 @@ pub mod evaluate_tracks;
 pub mod graph;
 pub mod keynodes;
 pub mod render;
+pub mod report;
 pub mod segment;
 pub mod uncertainty;
 
