@@ -261,7 +261,7 @@ fn tracking_section(summaries: &[(Summary, Option<serde_json::Value>)]) -> Secti
 }
 
 /// Every numeric column of a training log against its `step` column.
-fn read_log(path: &Path) -> anyhow::Result<Vec<(String, Vec<(f64, f64)>)>> {
+fn read_log(path: &Path) -> anyhow::Result<Vec<plots::Curve>> {
     use arrow::array::{Array, Float64Array};
     use arrow::datatypes::DataType;
     let file =

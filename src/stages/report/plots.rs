@@ -88,9 +88,12 @@ pub fn grouped_bars(
     Ok(svg)
 }
 
+/// A named curve of `(step, value)` points.
+pub type Curve = (String, Vec<(f64, f64)>);
+
 /// Curves `(name, [(step, value)])` on a log-scale y axis; non-positive or non-finite
 /// values are left out (a log axis cannot show them).
-pub fn log_curves(title: &str, curves: &[(String, Vec<(f64, f64)>)]) -> anyhow::Result<String> {
+pub fn log_curves(title: &str, curves: &[Curve]) -> anyhow::Result<String> {
     let points =
         curves.iter().flat_map(|(_, c)| c.iter()).filter(|(_, v)| v.is_finite() && *v > 0.0);
     let (mut x1, mut lo, mut hi) = (1.0f64, f64::INFINITY, f64::NEG_INFINITY);
@@ -192,7 +195,7 @@ mod tests {
         )
         .unwrap();
         assert!(svg.starts_with("<svg") && svg.contains("usplat4d") && svg.contains("PSNR"));
-        assert_eq!(svg.matches("<rect").count() >= 3, true);
+        assert!(svg.matches("<rect").count() >= 3);
         let curves = vec![("l1".to_string(), vec![(0.0, 1.0), (10.0, 0.1), (20.0, -1.0)])];
         let svg = log_curves("loss", &curves).unwrap();
         assert!(svg.contains("<polyline") || svg.contains("<path"));
