@@ -14,7 +14,8 @@
 pub mod cli;
 pub mod context;
 pub mod datasets;
-pub mod image_io;
+pub mod formats;
+pub mod math;
 pub mod metrics;
 pub mod model;
 pub mod pipeline;
@@ -22,6 +23,8 @@ pub mod render;
 pub mod scene;
 pub mod stages;
 pub mod tables;
+pub mod tools;
+pub mod util;
 
 /// The tool version recorded in every table's metadata and in pipeline cache keys.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
