@@ -143,7 +143,7 @@ fn embedded_fox_tiny_scene() {
 #[test]
 fn shared_simple_skin_tiny_scene() {
     let Some(data) = shared_data() else {
-        eprintln!("skipped: ../shared/data not found");
+        eprintln!("SKIP shared_simple_skin_tiny_scene: ../shared/data not found");
         return;
     };
     let tmp = tempfile::tempdir().unwrap();
