@@ -9,6 +9,7 @@
 
 pub mod network;
 pub mod pickle;
+pub mod scratch;
 pub mod weights;
 pub mod winograd;
 

@@ -20,7 +20,7 @@
 use ndarray::{ArrayView2, ArrayViewMut2, ShapeBuilder, linalg::general_mat_mul};
 use rayon::prelude::*;
 
-use super::network::scratch;
+use super::scratch;
 
 /// Interpolation points of F(4×4, 3×3) and F(2×2, 5×5) (`n = 6`: five finite points);
 /// ±1/2 rather than ±2 halves the f32 error of F(4×4, 3×3) on AlexNet-like layers.
