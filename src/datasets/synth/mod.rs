@@ -391,10 +391,18 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
 
     // Surface samples on frame 0.
     let pos0 = posed(0);
-    let gauss_pts =
-        surface::sample_surface(&pos0, tris, p.gaussians as usize, &mut Rng::from_state(p.seed));
-    let track_pts =
-        surface::sample_surface(&pos0, tris, p.tracks as usize, &mut Rng::from_state(mix(!p.seed)));
+    let gauss_pts = surface::sample_surface(
+        &pos0,
+        tris,
+        p.gaussians as usize,
+        &mut Rng::from_state(p.seed).after(1),
+    );
+    let track_pts = surface::sample_surface(
+        &pos0,
+        tris,
+        p.tracks as usize,
+        &mut Rng::from_state(mix(!p.seed)).after(1),
+    );
     if gauss_pts.is_empty() {
         return Err(Error::Degenerate {
             path: p.gltf.clone(),

@@ -93,7 +93,7 @@ mod tests {
             Vec3::new(3.0, 1.0, 0.0),
         ];
         let tris = [[0, 1, 2], [3, 4, 5]];
-        let s = sample_surface(&pos, &tris, 4000, &mut Rng::from_state(7));
+        let s = sample_surface(&pos, &tris, 4000, &mut Rng::from_state(7).after(1));
         let second = s.iter().filter(|p| p.tri == 1).count();
         assert!((second as f64 / 4000.0 - 0.75).abs() < 0.03, "{second}");
         assert!(
@@ -101,7 +101,7 @@ mod tests {
                 .all(|p| p.b.iter().all(|&x| x >= 0.0)
                     && (p.b.iter().sum::<f32>() - 1.0).abs() < 1e-5)
         );
-        assert_eq!(s, sample_surface(&pos, &tris, 4000, &mut Rng::from_state(7)));
+        assert_eq!(s, sample_surface(&pos, &tris, 4000, &mut Rng::from_state(7).after(1)));
         let q = frame(&pos, &tris, &s[0]);
         assert!((q * Vec3::Z).abs_diff_eq(Vec3::Z, 1e-6));
         assert!((q * Vec3::X).abs_diff_eq(Vec3::X, 1e-6));
