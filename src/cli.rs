@@ -4,9 +4,12 @@
 //! `serde::Deserialize`), so pipeline `params:` and CLI flags cannot diverge. This module
 //! only names the subcommands and routes them; it performs no I/O of its own.
 
+use std::path::Path;
+
 use clap::{Parser, Subcommand};
 
 use crate::context::Context;
+use crate::pipeline::{Executor, spec::Stage};
 
 /// Top-level command line of the `usplat4d` binary.
 #[derive(Debug, Parser)]
@@ -58,9 +61,9 @@ pub enum Command {
     #[command(subcommand)]
     Pipeline(crate::pipeline::PipelineCommand),
     /// Print schema, row count, per-column statistics and first rows of a Parquet table.
-    Inspect(crate::tables::inspect::InspectParams),
+    Inspect(crate::tools::inspect::InspectParams),
     /// Validate a model or scene directory completely (every frame, every file).
-    Check(crate::tables::check::CheckParams),
+    Check(crate::tools::check::CheckParams),
 }
 
 /// `usplat4d import ...`
@@ -74,13 +77,13 @@ pub enum ImportCommand {
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
     /// Rasterizer forward and forward+backward timings.
-    Render(crate::render::bench::BenchRenderParams),
+    Render(crate::tools::bench::render::BenchRenderParams),
     /// Key-node and edge construction timings at scale.
-    Graph(crate::stages::bench_graph::BenchGraphParams),
+    Graph(crate::tools::bench::graph::BenchGraphParams),
     /// LPIPS and evaluation timings.
-    Metrics(crate::metrics::bench::BenchMetricsParams),
+    Metrics(crate::tools::bench::metrics::BenchMetricsParams),
     /// Per-frame timings of the uncertainty stage's render and convergence test.
-    Uncertainty(crate::stages::bench_uncertainty::BenchUncertaintyParams),
+    Uncertainty(crate::tools::bench::uncertainty::BenchUncertaintyParams),
 }
 
 impl Command {
@@ -108,7 +111,7 @@ impl Command {
 /// Run one parsed command inside a tracing span named after it. Used by `main` and by the
 /// pipeline runner (in-process).
 pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
-    use crate::{datasets, metrics, pipeline, render, stages, tables};
+    use crate::{datasets, metrics, pipeline, stages, tools};
     let _span = tracing::info_span!("stage", name = command.name()).entered();
     tracing::info!("start");
     match command {
@@ -122,12 +125,80 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Evaluate(p) => stages::evaluate::run(&p, ctx),
         Command::Report(p) => stages::report::run(&p, ctx),
         Command::Lpips(c) => metrics::lpips::run_command(&c, ctx),
-        Command::Bench(BenchCommand::Render(p)) => render::bench::run(&p, ctx),
-        Command::Bench(BenchCommand::Graph(p)) => stages::bench_graph::run(&p, ctx),
-        Command::Bench(BenchCommand::Metrics(p)) => metrics::bench::run(&p, ctx),
-        Command::Bench(BenchCommand::Uncertainty(p)) => stages::bench_uncertainty::run(&p, ctx),
-        Command::Pipeline(c) => pipeline::run_command(&c, ctx),
-        Command::Inspect(p) => tables::inspect::run(&p, ctx),
-        Command::Check(p) => tables::check::run(&p, ctx),
+        Command::Bench(BenchCommand::Render(p)) => tools::bench::render::run(&p, ctx),
+        Command::Bench(BenchCommand::Graph(p)) => tools::bench::graph::run(&p, ctx),
+        Command::Bench(BenchCommand::Metrics(p)) => tools::bench::metrics::run(&p, ctx),
+        Command::Bench(BenchCommand::Uncertainty(p)) => tools::bench::uncertainty::run(&p, ctx),
+        Command::Pipeline(c) => pipeline::run_command(&c, &mut InProcess { ctx: ctx.clone() }, ctx),
+        Command::Inspect(p) => tools::inspect::run(&p, ctx),
+        Command::Check(p) => tools::check::run(&p, ctx),
+    }
+}
+
+/// Runs a stage as a usplat4d subcommand in this process: parses `argv` with the CLI parser
+/// and calls [`dispatch`] with the working directory set to the pipeline directory for the
+/// duration of the stage (the runner is single-threaded at the stage level). Stage output is
+/// quiet unless the pipeline runs with `--verbose`.
+#[derive(Debug, Clone)]
+pub struct InProcess {
+    /// The pipeline's context.
+    pub ctx: Context,
+}
+
+impl Executor for InProcess {
+    fn execute(&mut self, stage: &Stage, base: &Path) -> anyhow::Result<()> {
+        use clap::Parser;
+        let cli =
+            Cli::try_parse_from(std::iter::once("usplat4d".to_string()).chain(stage.argv.clone()))
+                .map_err(|e| anyhow::anyhow!("{}", e.to_string().trim_end()))?;
+        if matches!(cli.command, Command::Pipeline(_)) {
+            anyhow::bail!("a stage cannot run `pipeline`");
+        }
+        if cli.threads.is_some() {
+            self.ctx
+                .warn(format!("stage `{}`: --threads is ignored inside a pipeline", stage.name));
+        }
+        let ctx = Context {
+            quiet: cli.quiet || self.ctx.quiet || self.ctx.verbose == 0,
+            verbose: cli.verbose.max(self.ctx.verbose.saturating_sub(1)),
+        };
+        let previous = std::env::current_dir()?;
+        let base = if base.as_os_str().is_empty() { Path::new(".") } else { base };
+        std::env::set_current_dir(base).map_err(|e| anyhow::anyhow!("{}: {e}", base.display()))?;
+        let result =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| dispatch(cli.command, &ctx)));
+        std::env::set_current_dir(&previous)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", previous.display()))?;
+        match result {
+            Ok(r) => r,
+            Err(panic) => {
+                let msg = panic
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "unknown panic".into());
+                anyhow::bail!("panicked: {msg}")
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::spec::Pipeline;
+
+    #[test]
+    fn the_in_process_executor_reports_bad_commands_without_running_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("p.yaml");
+        let yaml = "stages:\n  a: {cmd: pipeline dag x.yaml}\n  b: {cmd: frobnicate --now}\n";
+        std::fs::write(&file, yaml).unwrap();
+        let p = Pipeline::load(&file, &[]).unwrap();
+        let mut exec = InProcess { ctx: Context::quiet() };
+        let e = exec.execute(&p.stages[0], &p.base).unwrap_err();
+        assert_eq!(e.to_string(), "a stage cannot run `pipeline`");
+        let e = exec.execute(&p.stages[1], &p.base).unwrap_err();
+        assert!(e.to_string().starts_with("error: unrecognized subcommand 'frobnicate'"), "{e}");
     }
 }

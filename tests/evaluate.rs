@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use usplat4d::image_io::{Image, read_png, write_png};
+use usplat4d::formats::png::{Image, read_png, write_png};
 use usplat4d::scene::{Camera, Scene, Split};
 use usplat4d::tables::Provenance;
 

@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use super::{psnr::psnr, ssim::ssim};
-use crate::image_io::read_png;
+use crate::formats::png::read_png;
 
 /// `../shared/data/fixtures/dycheck-metrics` from a worktree or from the main checkout.
 fn fixture_dir() -> Option<PathBuf> {

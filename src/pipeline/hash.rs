@@ -113,7 +113,7 @@ impl Hasher {
             self.stamps.retain(|path, _| Path::new(path).exists());
             let bytes = serde_json::to_vec(&self.stamps)
                 .map_err(|e| Error::BadState { path: file.clone(), message: e.to_string() })?;
-            super::write_atomic(file, &bytes)?;
+            crate::util::fs::write_atomic(file, &bytes)?;
             self.dirty = false;
         }
         Ok(())

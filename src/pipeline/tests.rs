@@ -272,18 +272,6 @@ fn without_a_run_cache_setting_a_param_back_reruns() {
 }
 
 #[test]
-fn the_in_process_executor_reports_bad_commands_without_running_them() {
-    let f =
-        Fixture::new("stages:\n  a: {cmd: pipeline dag x.yaml}\n  b: {cmd: frobnicate --now}\n");
-    let p = Pipeline::load(&f.file(), &[]).unwrap();
-    let mut exec = InProcess { ctx: Context::quiet() };
-    let e = exec.execute(&p.stages[0], &p.base).unwrap_err();
-    assert_eq!(e.to_string(), "a stage cannot run `pipeline`");
-    let e = exec.execute(&p.stages[1], &p.base).unwrap_err();
-    assert!(e.to_string().starts_with("error: unrecognized subcommand 'frobnicate'"), "{e}");
-}
-
-#[test]
 fn a_stage_killed_midway_is_redone_and_finished_stages_are_kept() {
     let yaml = PIPE
         .replace("cmd: split lines both.txt", "cmd: ${split} lines both.txt")

@@ -13,7 +13,7 @@ use std::path::PathBuf;
 
 use super::graph::spectral::{self, SparseSym};
 use crate::context::Context;
-use crate::image_io::Image;
+use crate::formats::png::Image;
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::segments::Segments;
 
@@ -178,6 +178,6 @@ pub fn run(p: &SegmentParams, ctx: &Context) -> anyhow::Result<()> {
         &s.segments,
         &prov,
     )?;
-    crate::image_io::write_png(&p.out.join("weights.png"), &weight_image(&s, 1024))?;
+    crate::formats::png::write_png(&p.out.join("weights.png"), &weight_image(&s, 1024))?;
     Ok(())
 }

@@ -8,10 +8,8 @@
 //! where it applies the column and the row or frame.
 
 pub mod cameras;
-pub mod check;
 pub mod edges;
 pub mod gaussians;
-pub mod inspect;
 pub mod io;
 pub mod key_nodes;
 pub mod metrics;
@@ -23,7 +21,7 @@ pub mod uncertainty;
 pub mod validate;
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
 
 use std::path::PathBuf;
 

@@ -5,7 +5,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::image_io::{Image, read_png};
+use crate::formats::png::{Image, read_png};
 use crate::model::Model;
 use crate::render::{
     ColorSource, CpuRenderer, RenderCamera, RenderSettings, Renderer, SplatInputs,
@@ -79,16 +79,7 @@ pub fn render_colored(
     colors: &[[f32; 3]],
 ) -> anyhow::Result<Image> {
     let state = model.frame(frame)?;
-    let g = &model.gaussians;
-    let inputs = SplatInputs {
-        means: &state.position,
-        quats: &state.rotation,
-        scales: &g.scale,
-        opacities: &g.opacity,
-        colors: ColorSource::Rgb(colors),
-        features: &[],
-        num_features: 0,
-    };
+    let inputs = SplatInputs { colors: ColorSource::Rgb(colors), ..model.splat_inputs(&state) };
     let out = CpuRenderer.render(&RenderCamera::from(cam), &inputs, &RenderSettings::default())?;
     Ok(Image { width: out.width, height: out.height, channels: 3, data: out.color })
 }

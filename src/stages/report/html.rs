@@ -3,7 +3,7 @@
 
 use base64::Engine;
 
-use crate::image_io::Image;
+use crate::formats::png::Image;
 
 /// `s` with the five HTML-special characters escaped.
 pub fn escape(s: &str) -> String {

@@ -129,7 +129,7 @@ pub fn run(p: &ReportParams, ctx: &Context) -> anyhow::Result<()> {
     );
     let page = html::page(&p.title, &sections);
     let path = p.out.join("report.html");
-    crate::image_io::write_atomic(&path, page.as_bytes())?;
+    crate::util::fs::write_atomic(&path, page.as_bytes())?;
     ctx.info(format!(
         "report: {} sections, {} KiB, in {}",
         sections.len(),

@@ -64,9 +64,11 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
-use super::graph::{Amount, Profile, Tracks, rank_key};
+use super::graph::tracks::Tracks;
+use super::params::{Amount, Profile};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
+use crate::util::rng::rank_key;
 
 /// Rungs of the `auto` voxel ladder: edges diag_t·2^(r − 11), r = 0..11 (see the module doc).
 pub const LADDER_RUNGS: usize = 12;
@@ -777,7 +779,7 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
     let unc = p
         .uncertainty
         .join(<crate::tables::uncertainty::UncertaintyTable as crate::tables::Table>::file_name());
-    let tracks = super::graph::load_tracks(&model, &unc, ctx)?;
+    let tracks = super::graph::tracks::load_tracks(&model, &unc, ctx)?;
     let (keys, report) = select_with_report(&tracks, &settings);
     let [n_key, n_nonkey, n_unlinked, n_culled] = report.roles;
     ctx.info(format!(

@@ -27,6 +27,7 @@ use crate::model::Model;
 use crate::render::CpuRenderer;
 use crate::scene::Scene;
 use crate::tables::{tracks_2d::Tracks2dReader, tracks_3d::Tracks3dReader};
+use crate::util::fs::dir_label;
 
 /// The scene's ground-truth 3D tracks file.
 pub const TRACKS_3D: &str = "tracks_3d.parquet";
@@ -186,7 +187,7 @@ fn evaluate_pck_t(
         return Ok(None);
     };
     Ok(Some(PckTSummary {
-        model: super::evaluate::dir_label(model_dir),
+        model: dir_label(model_dir),
         keypoints,
         keyframes: gt.frames,
         pairs: score.pairs,
@@ -267,7 +268,7 @@ fn evaluate_tracks(
     };
     debug_assert_eq!(score.pck.len(), PCK_3D_FRACTIONS.len());
     Ok(Some(TrackingSummary {
-        model: super::evaluate::dir_label(model_dir),
+        model: dir_label(model_dir),
         tracks: gt.positions.first().map_or(0, Vec::len),
         keyframes: keys,
         pairs: score.pairs,

@@ -11,13 +11,15 @@
 
 use std::time::Instant;
 
-use glam::{DMat3, DQuat, DVec3};
+use glam::DMat3;
 
-use super::edges::{self, EdgeSettings, NonkeyAssignMode};
-use super::graph::search::{self, KeyFrames};
-use super::graph::{Amount, MetricForm, Profile, Rng, Tracks, apply};
-use super::keynodes::{self, KeynodeSettings};
 use crate::context::Context;
+use crate::stages::edges::{self, EdgeSettings, NonkeyAssignMode};
+use crate::stages::graph::metric::{MetricForm, apply};
+use crate::stages::graph::search::{self, KeyFrames};
+use crate::stages::graph::tracks::{Tracks, synthetic_tracks_hidden};
+use crate::stages::keynodes::{self, KeynodeSettings};
+use crate::stages::params::{Amount, Profile};
 
 /// Parameters of `usplat4d bench graph`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
@@ -82,78 +84,6 @@ fn default_checks() -> usize {
     200
 }
 
-/// A synthetic scene of `groups` rigid blobs: the tracks, the training cameras' R_cw `[T]`
-/// and the group of each Gaussian `[N]`; 30% of the Gaussians start hidden (see
-/// [`synthetic_tracks_hidden`]).
-pub fn synthetic_tracks(
-    n: usize,
-    nt: usize,
-    groups: usize,
-    seed: u64,
-) -> (Tracks, Vec<DMat3>, Vec<u32>) {
-    synthetic_tracks_hidden(n, nt, groups, 0.3, seed)
-}
-
-/// [`synthetic_tracks`] where a fraction `hidden` of the Gaussians starts unreliable
-/// (u = φ) and each frame flips a Gaussian's visibility with probability 0.05 (never when
-/// `hidden` is 0).
-pub fn synthetic_tracks_hidden(
-    n: usize,
-    nt: usize,
-    groups: usize,
-    hidden: f64,
-    seed: u64,
-) -> (Tracks, Vec<DMat3>, Vec<u32>) {
-    let flip = if hidden > 0.0 { 0.05 } else { 0.0 };
-    let mut rng = Rng::new(seed);
-    let groups = groups.max(1);
-    let motion: Vec<(DVec3, DVec3, DVec3, f64)> = (0..groups)
-        .map(|g| {
-            let angle = std::f64::consts::TAU * g as f64 / groups as f64;
-            let centre = DVec3::new(3.0 * angle.cos(), 3.0 * angle.sin(), rng.normal() * 0.3);
-            let vel = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.01;
-            let axis = DVec3::new(rng.normal(), rng.normal(), rng.normal()).normalize_or(DVec3::Z);
-            (centre, vel, axis, 0.01 + 0.02 * rng.uniform())
-        })
-        .collect();
-    let mut tracks = Tracks { ids: (0..n as u32).collect(), num_frames: nt, ..Default::default() };
-    tracks.positions.reserve(n * nt);
-    tracks.u.reserve(n * nt);
-    tracks.reliable.reserve(n * nt);
-    let mut group = Vec::with_capacity(n);
-    for _ in 0..n {
-        let g = (rng.next_u64() % groups as u64) as usize;
-        group.push(g as u32);
-        let (centre, vel, axis, omega) = motion[g];
-        let offset = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.6;
-        let base_u = (0.05 * (0.7 * rng.normal()).exp()) as f32;
-        let mut is_hidden = rng.uniform() < hidden;
-        for t in 0..nt {
-            let rot = DQuat::from_axis_angle(axis, omega * t as f64);
-            let p = centre + vel * t as f64 + rot * offset;
-            tracks.positions.push(p.as_vec3().to_array());
-            if rng.uniform() < flip {
-                is_hidden = !is_hidden;
-            }
-            let u = base_u * (0.3 * rng.normal()).exp() as f32;
-            tracks.u.push(if is_hidden { 1e8 } else { u });
-            tracks.reliable.push(!is_hidden);
-        }
-    }
-    let rotations = (0..nt)
-        .map(|t| {
-            let a = 0.01 * t as f64;
-            let eye = DVec3::new(8.0 * a.cos(), 8.0 * a.sin(), 2.0);
-            let f = (-eye).normalize();
-            let r = f.cross(DVec3::Z).normalize();
-            let d = f.cross(r);
-            // rows of R_cw are the camera axes (x right, y down, z forward) in world
-            DMat3::from_cols(r, d, f).transpose()
-        })
-        .collect();
-    (tracks, rotations, group)
-}
-
 /// Peak resident memory of this process, bytes (VmHWM), if the kernel reports it.
 pub fn peak_rss_bytes() -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
@@ -162,9 +92,9 @@ pub fn peak_rss_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
-/// CPU time of this process so far in seconds ([`crate::render::bench::cpu_ms`]).
+/// CPU time of this process so far in seconds ([`crate::tools::bench::render::cpu_ms`]).
 fn cpu_seconds() -> Option<f64> {
-    crate::render::bench::cpu_ms().map(|ms| ms / 1e3)
+    crate::tools::bench::render::cpu_ms().map(|ms| ms / 1e3)
 }
 
 /// `usplat4d bench graph`.

@@ -15,8 +15,9 @@
 use glam::{Mat3, Vec3};
 use rayon::prelude::*;
 
-use super::constants::{ALPHA_THRESHOLD, COV_BLUR, FOV_MARGIN};
-use super::{RenderCamera, SplatInputs};
+use crate::math::quat;
+use crate::render::constants::{ALPHA_THRESHOLD, COV_BLUR, FOV_MARGIN};
+use crate::render::{RenderCamera, SplatInputs};
 
 /// A projected Gaussian (screen space, pixels). All zero and `valid == false` when culled.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -102,43 +103,6 @@ impl CameraConsts {
     }
 }
 
-/// Rotation matrix of a unit quaternion `w, x, y, z`.
-pub fn quat_to_rotmat(q: [f32; 4]) -> Mat3 {
-    let [w, x, y, z] = q;
-    Mat3::from_cols(
-        Vec3::new(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
-        Vec3::new(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
-        Vec3::new(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
-    )
-}
-
-/// VJP of [`quat_to_rotmat`]: `dL/dq` (unit q) from `dL/dR`.
-pub fn quat_to_rotmat_vjp(q: [f32; 4], v_r: Mat3) -> [f32; 4] {
-    let [w, x, y, z] = q;
-    let v = |i: usize, j: usize| v_r.col(j)[i];
-    [
-        2.0 * (x * (v(2, 1) - v(1, 2)) + y * (v(0, 2) - v(2, 0)) + z * (v(1, 0) - v(0, 1))),
-        2.0 * (-2.0 * x * (v(1, 1) + v(2, 2))
-            + y * (v(1, 0) + v(0, 1))
-            + z * (v(2, 0) + v(0, 2))
-            + w * (v(2, 1) - v(1, 2))),
-        2.0 * (x * (v(1, 0) + v(0, 1)) - 2.0 * y * (v(0, 0) + v(2, 2))
-            + z * (v(2, 1) + v(1, 2))
-            + w * (v(0, 2) - v(2, 0))),
-        2.0 * (x * (v(2, 0) + v(0, 2)) + y * (v(2, 1) + v(1, 2)) - 2.0 * z * (v(0, 0) + v(1, 1))
-            + w * (v(1, 0) - v(0, 1))),
-    ]
-}
-
-/// The normalised quaternion and its norm, or `None` when it is zero or not finite.
-pub fn normalize_quat(q: [f32; 4]) -> Option<([f32; 4], f32)> {
-    let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-    if !(n.is_finite() && n > 1e-12) {
-        return None;
-    }
-    Some((q.map(|v| v / n), n))
-}
-
 /// Intermediates of one projection, recomputed by the VJP.
 struct ProjState {
     q: [f32; 4],
@@ -163,13 +127,13 @@ fn proj_state(
     if !mean.iter().chain(scale.iter()).all(|v| v.is_finite()) || scale.iter().any(|s| *s < 0.0) {
         return None;
     }
-    let (q, _) = normalize_quat(quat)?;
+    let (q, _) = quat::normalize(quat)?;
     let p_cam = c.rot * Vec3::from(mean) + c.trans;
     let z = p_cam.z;
     if !(z >= c.near && z <= c.far) {
         return None;
     }
-    let r = quat_to_rotmat(q);
+    let r = quat::to_rotmat(q);
     let m = r * Mat3::from_diagonal(Vec3::from(scale));
     let cov_world = m * m.transpose();
     let cov_cam = c.rot * cov_world * c.rot.transpose();
@@ -339,10 +303,9 @@ pub fn project_vjp(
         v_scale[j] = s.r.col(j).dot(col);
         *v_r.col_mut(j) += col * scale[j];
     }
-    let v_qn = quat_to_rotmat_vjp(s.q, v_r);
-    let (_, norm) = normalize_quat(quat).unwrap_or(([1.0, 0.0, 0.0, 0.0], 1.0));
-    let dot: f32 = (0..4).map(|k| v_qn[k] * s.q[k]).sum();
-    let v_quat = std::array::from_fn(|k| (v_qn[k] - dot * s.q[k]) / norm);
+    let v_qn = quat::to_rotmat_vjp(s.q, v_r);
+    let (_, norm) = quat::normalize(quat).unwrap_or(([1.0, 0.0, 0.0, 0.0], 1.0));
+    let v_quat = quat::normalize_vjp(s.q, norm, v_qn);
     Splat3dGrad { mean: v_mean.into(), quat: v_quat, scale: v_scale, opacity: v.opacity }
 }
 
@@ -379,15 +342,6 @@ mod tests {
         let power = (255.0f32 * 0.5).ln();
         assert!((s.extent[0] - (2.0 * power * a).sqrt()).abs() < 1e-4);
         assert!((s.radius - (2.0 * power * d).sqrt()).abs() < 1e-4);
-    }
-
-    #[test]
-    fn rotation_matrix_is_orthonormal_and_matches_glam() {
-        let q = normalize_quat([0.3, -0.5, 0.2, 0.7]).unwrap().0;
-        let r = quat_to_rotmat(q);
-        let g = Mat3::from_quat(glam::Quat::from_xyzw(q[1], q[2], q[3], q[0]));
-        assert!(r.abs_diff_eq(g, 1e-6));
-        assert!((r * r.transpose()).abs_diff_eq(Mat3::IDENTITY, 1e-6));
     }
 
     #[test]

@@ -153,10 +153,10 @@ pub fn rasterize_bwd(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::blend::Cutoff;
-    use crate::render::forward::rasterize_fwd;
-    use crate::render::isect::{TileGrid, isect_tiles, tile_ranges};
-    use crate::render::project::Splat2d;
+    use crate::render::Cutoff;
+    use crate::render::cpu::forward::rasterize_fwd;
+    use crate::render::cpu::isect::{TileGrid, isect_tiles, tile_ranges};
+    use crate::render::cpu::project::Splat2d;
 
     fn splat(x: f32, y: f32, conic: [f32; 3], opacity: f32, depth: f32) -> Splat2d {
         let power = (255.0 * opacity).ln();

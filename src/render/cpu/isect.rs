@@ -7,8 +7,8 @@
 
 use rayon::prelude::*;
 
-use super::constants::TILE_SIZE;
 use super::project::Splat2d;
+use crate::render::constants::TILE_SIZE;
 
 /// The tile grid of an image.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -14,16 +14,14 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use super::graph::Profile;
-use super::uncertainty::{
-    FrameTruth, LoadedTruth, UncertaintySettings, frame_work, model_colors, pixel_pass,
-};
 use crate::context::Context;
-use crate::render::bench::{cpu_ms, median_ms};
 use crate::render::synthetic::{camera, cloud};
-use crate::render::{
-    ColorSource, CpuRenderer, RenderCamera, RenderSettings, Renderer, SplatInputs,
+use crate::render::{CpuRenderer, RenderCamera, RenderSettings, Renderer, SplatInputs};
+use crate::stages::params::Profile;
+use crate::stages::uncertainty::{
+    FrameTruth, LoadedTruth, UncertaintySettings, frame_work, pixel_pass,
 };
+use crate::tools::bench::render::{cpu_ms, median_ms};
 
 /// Parameters of `usplat4d bench uncertainty`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
@@ -160,7 +158,7 @@ fn failing_share(
 ) -> anyhow::Result<f64> {
     let out = CpuRenderer.render(camera, inputs, settings)?;
     let mut pass = pixel_pass(&out.color, truth.rgb, s.eta_c, s.channel_reduce);
-    super::uncertainty::apply_gates(
+    crate::stages::uncertainty::apply_gates(
         &mut pass,
         &out.color,
         truth.rgb,
@@ -204,15 +202,7 @@ pub fn run(p: &BenchUncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     let cam = camera(p.width, p.height);
     for &n in &p.counts {
         let c = cloud(&cam, n, p.depth_complexity, p.seed);
-        let inputs = SplatInputs {
-            means: &c.means,
-            quats: &c.quats,
-            scales: &c.scales,
-            opacities: &c.opacities,
-            colors: ColorSource::Rgb(&c.colors),
-            features: &[],
-            num_features: 0,
-        };
+        let inputs = c.inputs();
         let mut rgb = CpuRenderer.render(&cam, &inputs, &settings)?.color;
         let fail_cols = (p.fail_fraction * p.width as f32) as usize;
         for (i, v) in rgb.iter_mut().enumerate() {
@@ -241,15 +231,7 @@ pub fn run(p: &BenchUncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
         let bar = ctx.progress(frames as u64, "bench uncertainty (model)");
         for (t, cam) in cams.iter().enumerate().take(frames) {
             let state = model.frame(t)?;
-            let inputs = SplatInputs {
-                means: &state.position,
-                quats: &state.rotation,
-                scales: &g.scale,
-                opacities: &g.opacity,
-                colors: model_colors(g),
-                features: &[],
-                num_features: 0,
-            };
+            let inputs = model.splat_inputs(&state);
             let loaded = LoadedTruth::load(&scene, cam, settings.background, &s)?;
             let camera = RenderCamera::from(*cam);
             let job = (&camera, &inputs, &settings);

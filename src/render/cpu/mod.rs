@@ -6,22 +6,26 @@
 //! independent Gaussians), so outputs and gradients are bit-identical whatever the thread
 //! count. Channel layout per Gaussian, C = 4 + F: `[r, g, b, z, f_0 .. f_{F-1}]`.
 
+pub mod backward;
+pub mod blend;
+pub mod forward;
+pub mod isect;
+pub mod project;
+
 use glam::{Mat3, Vec3};
 use rayon::prelude::*;
 
-use super::backward::rasterize_bwd;
-use super::blend::Cutoff;
-use super::constants::ALPHA_THRESHOLD;
-use super::forward::{FwdImages, RasterInputs, failing_pairs, rasterize_fwd};
-use super::isect::{Intersections, TileGrid, isect_tiles, tile_ranges};
-use super::project::{
-    CameraConsts, Splat2d, Splat2dGrad, normalize_quat, project, project_vjp, quat_to_rotmat,
+use crate::math::quat;
+use crate::render::constants::ALPHA_THRESHOLD;
+use crate::render::{
+    ColorSource, ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, Error, ImageGrads,
+    RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads,
+    SplatInputs, sh,
 };
-use super::{
-    ColorSource, Convergence, ConvergenceTest, CpuRenderer, DifferentiableRenderer, Error,
-    ImageGrads, RasterPass, RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer,
-    ShFrame, SplatGrads, SplatInputs, sh,
-};
+use backward::rasterize_bwd;
+use forward::{FwdImages, RasterInputs, failing_pairs, rasterize_fwd};
+use isect::{Intersections, TileGrid, isect_tiles, tile_ranges};
+use project::{CameraConsts, Splat2d, Splat2dGrad, project, project_vjp};
 
 /// Forward state the CPU backward pass needs (one render's worth).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -102,8 +106,8 @@ fn view_dir(c: &CameraConsts, mean: [f32; 3], quat: [f32; 4], frame: ShFrame) ->
     let dir = d / len;
     match frame {
         ShFrame::World => (dir, len),
-        ShFrame::Local => match normalize_quat(quat) {
-            Some((q, _)) => (quat_to_rotmat(q).transpose() * dir, len),
+        ShFrame::Local => match quat::normalize(quat) {
+            Some((q, _)) => (quat::to_rotmat(q).transpose() * dir, len),
             None => (Vec3::ZERO, 0.0),
         },
     }
@@ -145,7 +149,7 @@ fn run_forward(
     cam: &RenderCamera,
     inputs: &SplatInputs,
     settings: &RenderSettings,
-    pass: RasterPass,
+    cutoff: Cutoff,
 ) -> Result<(SavedForBackward, FwdImages), Error> {
     check_inputs(cam, inputs, settings)?;
     let _span = tracing::debug_span!("render.cpu.forward", n = inputs.means.len()).entered();
@@ -155,7 +159,6 @@ fn run_forward(
     let channels = channels(&consts, inputs, &splats);
     let isect = isect_tiles(&grid, &splats);
     let offsets = tile_ranges(&isect.keys, grid.num_tiles());
-    let cutoff = pass.cutoff();
     let inp = RasterInputs {
         grid,
         splats: &splats,
@@ -255,9 +258,9 @@ impl CpuRenderer {
         cam: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
-        pass: RasterPass,
+        cutoff: Cutoff,
     ) -> Result<(RenderOutput, SavedForBackward), Error> {
-        let (saved, fwd) = run_forward(cam, inputs, settings, pass)?;
+        let (saved, fwd) = run_forward(cam, inputs, settings, cutoff)?;
         let aux = reduce_stats(&saved, &fwd);
         let out = assemble(cam, settings, inputs.num_features, &saved, &fwd, aux);
         Ok((out, saved))
@@ -271,21 +274,7 @@ impl Renderer for CpuRenderer {
         inputs: &SplatInputs,
         settings: &RenderSettings,
     ) -> Result<RenderOutput, Error> {
-        Ok(self.forward(cam, inputs, settings, RasterPass::Forward)?.0)
-    }
-
-    fn convergence(
-        &self,
-        cam: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-        pixel_pass: &[bool],
-    ) -> Result<Convergence, Error> {
-        let (out, saved) = self.forward(cam, inputs, settings, RasterPass::Forward)?;
-        let pass = |test| self.convergence_saved(cam, settings, &saved, pixel_pass, test);
-        let all = pass(ConvergenceTest::AllCoveredPixels)?;
-        let all_pass = all.iter().zip(&out.aux.n_pixels).map(|(a, n)| *a && *n > 0).collect();
-        Ok(Convergence { all_pass, center_pass: pass(ConvergenceTest::CentrePixel)? })
+        Ok(self.forward(cam, inputs, settings, Cutoff::Hard)?.0)
     }
 }
 
@@ -297,9 +286,9 @@ impl DifferentiableRenderer for CpuRenderer {
         cam: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
-        pass: RasterPass,
+        cutoff: Cutoff,
     ) -> Result<(RenderOutput, SavedForBackward), Error> {
-        self.forward(cam, inputs, settings, pass)
+        self.forward(cam, inputs, settings, cutoff)
     }
 
     fn backward(
@@ -464,9 +453,9 @@ fn project_backward(
                         let (v_dw, d_world) = match frame {
                             ShFrame::World => (v_dir, dir),
                             ShFrame::Local => {
-                                let (q, _) = normalize_quat(inputs.quats[i])
+                                let (q, _) = quat::normalize(inputs.quats[i])
                                     .unwrap_or(([1.0, 0.0, 0.0, 0.0], 1.0));
-                                let r = quat_to_rotmat(q);
+                                let r = quat::to_rotmat(q);
                                 let dw = r * dir;
                                 // dir_l[j] = Σ_i R[i][j] dw[i] → dL/dR[i][j] = dw[i] v_dir[j].
                                 v_rot = Mat3::from_cols(dw * v_dir.x, dw * v_dir.y, dw * v_dir.z);

@@ -10,16 +10,17 @@
 //! `[N, C]` channel values, the sorted `[M]` intersections and `[TX·TY+1]` tile offsets.
 //! Writes `[H, W, C]` blended channels (Σ T·α·c, no background), `[H, W]` final
 //! transmittance and last contributor, and `[M]` per-pair statistics (accumulated per tile
-//! in pixel order, no atomics), which [`super::cpu`] reduces per Gaussian in list order.
+//! in pixel order, no atomics), which [`super`] reduces per Gaussian in list order.
 
 use rayon::prelude::*;
 
 use std::cell::Cell;
 
-use super::blend::{Cutoff, SPAN, for_each_live_row, span_alpha};
-use super::constants::{T_THRESHOLD, TILE_SIZE};
+use super::blend::{SPAN, for_each_live_row, span_alpha};
 use super::isect::{Intersections, TileGrid};
 use super::project::Splat2d;
+use crate::render::Cutoff;
+use crate::render::constants::{T_THRESHOLD, TILE_SIZE};
 
 /// Per-(tile, Gaussian) statistics of one forward pass.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -296,8 +297,8 @@ pub fn failing_pairs(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::blend::eval_alpha;
-    use crate::render::isect::{isect_tiles, tile_ranges};
+    use crate::render::cpu::blend::eval_alpha;
+    use crate::render::cpu::isect::{isect_tiles, tile_ranges};
 
     fn splat(x: f32, y: f32, var: f32, opacity: f32, depth: f32) -> Splat2d {
         let power = (255.0 * opacity).ln();

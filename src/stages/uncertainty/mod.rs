@@ -22,18 +22,18 @@
 //! (1.6 GB for N = 200,000 and T = 475), plus one frame's images and render.
 //!
 //! The anisotropic U_{i,t} of Eq. 6 is derived from u and the camera where needed
-//! ([`super::graph::uncertainty_matrix`]), not stored.
+//! ([`super::graph::metric::uncertainty_matrix`]), not stored.
 
 use std::path::PathBuf;
 
-use super::graph::Profile;
+use super::params::Profile;
 use crate::context::Context;
-use crate::image_io::Image;
 use crate::render::{
-    ColorSource, ConvergenceTest, CpuRenderer, DifferentiableRenderer, RasterPass, RenderAux,
-    RenderCamera, RenderSettings, ShFrame, SplatInputs,
+    ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, RenderAux, RenderCamera,
+    RenderSettings, SplatInputs,
 };
 use crate::tables::uncertainty::UncertaintyFrame;
+use crate::util::{filter, stats};
 
 /// Which pixels a Gaussian's convergence indicator tests (profile row 4).
 #[derive(
@@ -259,20 +259,6 @@ pub fn frame_uncertainty(
     f
 }
 
-/// Linear-interpolation quantile `q` in [0, 1] of `v` (reorders `v`).
-fn quantile(v: &mut [f32], q: f64) -> f32 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let pos = q * (v.len() - 1) as f64;
-    let lo = pos.floor() as usize;
-    let hi = (lo + 1).min(v.len() - 1);
-    let a = *v.select_nth_unstable_by(lo, f32::total_cmp).1;
-    let b =
-        if hi == lo { a } else { *v[lo + 1..].iter().min_by(|x, y| x.total_cmp(y)).unwrap_or(&a) };
-    (a as f64 + (b as f64 - a as f64) * (pos - lo as f64)) as f32
-}
-
 /// Release normalisation (official-release.md Sec. 2.3) of all frames in place; returns the
 /// scale applied to the contributions (1 when none).
 pub fn normalise(frames: &mut [UncertaintyFrame], target: f32, clip: f32, phi: f32) -> f32 {
@@ -282,8 +268,8 @@ pub fn normalise(frames: &mut [UncertaintyFrame], target: f32, clip: f32, phi: f
             f.u.iter().zip(&f.converged).map(|(u, ok)| if *ok { 1.0 / u } else { 1.0 / phi })
         })
         .collect();
-    let c80 = quantile(&mut c, 0.80);
-    let c99 = quantile(&mut c, 0.99);
+    let c80 = stats::quantile(&mut c, 0.80);
+    let c99 = stats::quantile(&mut c, 0.99);
     let band: Vec<f64> = c.iter().filter(|v| **v > c80 && **v < c99).map(|v| *v as f64).collect();
     if band.is_empty() {
         return 1.0;
@@ -303,94 +289,6 @@ pub fn normalise(frames: &mut [UncertaintyFrame], target: f32, clip: f32, phi: f
     scale
 }
 
-/// SSIM map `[H, W, 3]` of two `[H, W, 3]` images: 11×11 Gaussian window, σ = 1.5, zero
-/// ('same') padding, C1 = 0.01², C2 = 0.03². Rayon over channels and image rows; every
-/// output value is computed by one fixed sequence of operations (thread-count independent).
-pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
-    use rayon::prelude::*;
-    if w == 0 || h == 0 {
-        return Vec::new();
-    }
-    let g: Vec<f32> = {
-        let k: Vec<f32> =
-            (0..11).map(|i| (-((i as f32 - 5.0).powi(2)) / (2.0 * 1.5 * 1.5)).exp()).collect();
-        let s: f32 = k.iter().sum();
-        k.iter().map(|v| v / s).collect()
-    };
-    let blur = |x: &[f32]| -> Vec<f32> {
-        let mut tmp = vec![0.0; w * h];
-        tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (xx, o) in row.iter_mut().enumerate() {
-                *o = (0..11)
-                    .filter_map(|k| {
-                        (xx + k).checked_sub(5).filter(|&c| c < w).map(|c| g[k] * x[y * w + c])
-                    })
-                    .sum();
-            }
-        });
-        let mut out = vec![0.0; w * h];
-        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (xx, o) in row.iter_mut().enumerate() {
-                *o = (0..11)
-                    .filter_map(|k| {
-                        (y + k).checked_sub(5).filter(|&r| r < h).map(|r| g[k] * tmp[r * w + xx])
-                    })
-                    .sum();
-            }
-        });
-        out
-    };
-    let (c1, c2) = (0.01f32 * 0.01, 0.03f32 * 0.03);
-    let channels: Vec<Vec<f32>> = (0..3)
-        .into_par_iter()
-        .map(|c| {
-            let x: Vec<f32> = (0..w * h).map(|i| a[i * 3 + c]).collect();
-            let y: Vec<f32> = (0..w * h).map(|i| b[i * 3 + c]).collect();
-            let xx: Vec<f32> = x.iter().map(|v| v * v).collect();
-            let yy: Vec<f32> = y.iter().map(|v| v * v).collect();
-            let xy: Vec<f32> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
-            let (mx, my, sxx, syy, sxy) = (blur(&x), blur(&y), blur(&xx), blur(&yy), blur(&xy));
-            (0..w * h)
-                .map(|i| {
-                    let (vx, vy, cv) =
-                        (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
-                    ((2.0 * mx[i] * my[i] + c1) * (2.0 * cv + c2))
-                        / ((mx[i] * mx[i] + my[i] * my[i] + c1) * (vx + vy + c2))
-                })
-                .collect()
-        })
-        .collect();
-    let mut out = vec![0.0; w * h * 3];
-    for (c, m) in channels.iter().enumerate() {
-        for (i, v) in m.iter().enumerate() {
-            out[i * 3 + c] = *v;
-        }
-    }
-    out
-}
-
-/// Sobel gradient magnitude `[H, W]` of a depth map `[H, W]` (edges replicated).
-pub fn sobel_magnitude(d: &[f32], w: usize, h: usize) -> Vec<f32> {
-    let at = |x: isize, y: isize| {
-        d[(y.clamp(0, h as isize - 1) as usize) * w + x.clamp(0, w as isize - 1) as usize]
-    };
-    let mut out = vec![0.0; w * h];
-    for y in 0..h as isize {
-        for x in 0..w as isize {
-            let gx = at(x + 1, y - 1) + 2.0 * at(x + 1, y) + at(x + 1, y + 1)
-                - at(x - 1, y - 1)
-                - 2.0 * at(x - 1, y)
-                - at(x - 1, y + 1);
-            let gy = at(x - 1, y + 1) + 2.0 * at(x, y + 1) + at(x + 1, y + 1)
-                - at(x - 1, y - 1)
-                - 2.0 * at(x, y - 1)
-                - at(x + 1, y - 1);
-            out[y as usize * w + x as usize] = (gx * gx + gy * gy).sqrt();
-        }
-    }
-    out
-}
-
 /// The release's extra gates ANDed into `pass` `[H, W]`: SSIM of every channel above
 /// `ssim`, depth gradient below its `percentile` over the mask, mask ≥ 0.5.
 pub fn apply_gates(
@@ -403,17 +301,17 @@ pub fn apply_gates(
     s: &UncertaintySettings,
 ) {
     if let Some(thr) = s.ssim_gate {
-        let m = ssim_map(rendered, truth, w, h);
+        let m = crate::metrics::ssim::ssim_map(rendered, truth, w, h);
         for (i, p) in pass.iter_mut().enumerate() {
             *p &= (0..3).all(|c| m[i * 3 + c] > thr);
         }
     }
     if let (Some(pct), Some(d)) = (s.depth_edge_percentile, depth) {
-        let g = sobel_magnitude(d, w, h);
+        let g = filter::sobel_magnitude(d, w, h);
         let mut inside: Vec<f32> =
             g.iter().zip(mask).filter(|(_, m)| **m).map(|(v, _)| *v).collect();
         if !inside.is_empty() {
-            let limit = quantile(&mut inside, pct as f64 / 100.0);
+            let limit = stats::quantile(&mut inside, pct as f64 / 100.0);
             for (p, v) in pass.iter_mut().zip(&g) {
                 *p &= *v < limit;
             }
@@ -450,7 +348,7 @@ pub fn frame_work(
     s: &UncertaintySettings,
 ) -> Result<UncertaintyFrame, crate::render::Error> {
     let renderer = CpuRenderer;
-    let (out, saved) = renderer.render_with_saved(camera, inputs, settings, RasterPass::Forward)?;
+    let (out, saved) = renderer.render_with_saved(camera, inputs, settings, Cutoff::Hard)?;
     let (w, h) = (out.width, out.height);
     let mut pass = pixel_pass(&out.color, truth.rgb, s.eta_c, s.channel_reduce);
     apply_gates(&mut pass, &out.color, truth.rgb, truth.depth, truth.mask, (w, h), s);
@@ -485,36 +383,22 @@ impl LoadedTruth {
         s: &UncertaintySettings,
     ) -> anyhow::Result<Self> {
         let (w, h) = (cam.width as usize, cam.height as usize);
-        let image_path = scene.resolve(&cam.image_path);
-        let truth = crate::image_io::read_png(&image_path)?.rgb_over(background);
-        if truth.width != w || truth.height != h {
+        let gate = s.depth_edge_percentile.is_some();
+        let truth = scene.ground_truth(cam, background, true, gate)?;
+        if truth.rgb.width != w || truth.rgb.height != h {
             anyhow::bail!(
                 "{}: image is {}x{}, the camera says {w}x{h}",
-                image_path.display(),
-                truth.width,
-                truth.height
+                scene.resolve(&cam.image_path).display(),
+                truth.rgb.width,
+                truth.rgb.height
             );
         }
-        let mask: Vec<bool> = match &cam.mask_path {
-            Some(m) => {
-                let img: Image = crate::image_io::read_png(&scene.resolve(m))?;
-                (0..w * h).map(|i| img.data[i * img.channels] >= 0.5).collect()
-            }
+        let mask: Vec<bool> = match &truth.mask {
+            Some(m) => m.data.iter().map(|v| *v >= 0.5).collect(),
             None => vec![true; w * h],
         };
-        let (depth, missing_depth) = match (&cam.depth_path, s.depth_edge_percentile) {
-            (Some(d), Some(_)) => {
-                let path = scene.resolve(d);
-                let depth = crate::image_io::read_npy_f32(&path)?.1;
-                if depth.len() != w * h {
-                    anyhow::bail!("{}: depth map is not {w}x{h}", path.display());
-                }
-                (Some(depth), false)
-            }
-            (None, Some(_)) => (None, true),
-            _ => (None, false),
-        };
-        Ok(LoadedTruth { rgb: truth.data, mask, depth, missing_depth })
+        let missing_depth = gate && cam.depth_path.is_none();
+        Ok(LoadedTruth { rgb: truth.rgb.data, mask, depth: truth.depth, missing_depth })
     }
 
     /// Borrowed view for [`frame_work`].
@@ -544,22 +428,13 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     let rows: Vec<usize> =
         (0..g.len()).filter(|&i| s.scope == Scope::All || g.dynamic[i]).collect();
     let ids: Vec<u32> = rows.iter().map(|&i| g.id[i]).collect();
-    let colors = model_colors(g);
     let settings = RenderSettings::default();
     let mut frames = Vec::with_capacity(cams.len());
     let mut warned_depth = false;
     let bar = ctx.progress(cams.len() as u64, "uncertainty");
     for (t, cam) in cams.iter().enumerate() {
         let state = model.frame(t)?;
-        let inputs = SplatInputs {
-            means: &state.position,
-            quats: &state.rotation,
-            scales: &g.scale,
-            opacities: &g.opacity,
-            colors,
-            features: &[],
-            num_features: 0,
-        };
+        let inputs = model.splat_inputs(&state);
         let loaded = LoadedTruth::load(&scene, cam, settings.background, &s)?;
         if loaded.missing_depth && !warned_depth {
             warned_depth = true;
@@ -597,20 +472,6 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     }
     w.finish()?;
     Ok(())
-}
-
-/// The colour source of a model's Gaussians (RGB, or world-frame SH when degree > 0).
-pub fn model_colors(g: &crate::model::Gaussians) -> ColorSource<'_> {
-    if g.sh_degree == 0 {
-        ColorSource::Rgb(&g.color)
-    } else {
-        ColorSource::Sh {
-            degree: g.sh_degree,
-            dc: &g.color,
-            rest: &g.sh_rest,
-            frame: ShFrame::World,
-        }
-    }
 }
 
 #[cfg(test)]

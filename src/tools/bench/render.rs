@@ -9,10 +9,9 @@
 
 use std::time::Instant;
 
-use super::synthetic::{camera, cloud};
-use super::{
-    ColorSource, CpuRenderer, DifferentiableRenderer, ImageGrads, RasterPass, RenderSettings,
-    Renderer, SplatInputs,
+use crate::render::synthetic::{camera, cloud};
+use crate::render::{
+    CpuRenderer, Cutoff, DifferentiableRenderer, ImageGrads, RenderSettings, Renderer,
 };
 
 /// Parameters of `usplat4d bench render`.
@@ -106,15 +105,7 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
     let bar = ctx.progress(p.counts.len() as u64, "bench render");
     for &n in &p.counts {
         let c = cloud(&cam, n, p.depth_complexity, p.seed);
-        let inputs = SplatInputs {
-            means: &c.means,
-            quats: &c.quats,
-            scales: &c.scales,
-            opacities: &c.opacities,
-            colors: ColorSource::Rgb(&c.colors),
-            features: &[],
-            num_features: 0,
-        };
+        let inputs = c.inputs();
         let warm = CpuRenderer.render(&cam, &inputs, &settings)?;
         let blended: u64 = warm.aux.n_pixels.iter().map(|&v| v as u64).sum();
         let v = ImageGrads {
@@ -133,7 +124,7 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
         for _ in 0..p.repeats {
             let t0 = Instant::now();
             let (_, saved) =
-                CpuRenderer.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward)?;
+                CpuRenderer.render_with_saved(&cam, &inputs, &settings, Cutoff::Hard)?;
             std::hint::black_box(CpuRenderer.backward(&cam, &inputs, &settings, &saved, &v)?);
             both.push(t0.elapsed().as_secs_f64() * 1e3);
             pairs = saved.isect.keys.len();

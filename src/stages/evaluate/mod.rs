@@ -12,25 +12,28 @@
 //! the per-image values.
 //!
 //! With `--model MODEL_DIR`, the model's tracking scores are added to the summary
-//! ([`super::evaluate_tracks`]): 3D EPE and PCK at 5% and 10% of the bbox diagonal on a
+//! ([`tracks`]): 3D EPE and PCK at 5% and 10% of the bbox diagonal on a
 //! scene with ground-truth tracks, DyCheck's PCK-T (with the numbers of pairs and
 //! keypoints scored) on a scene with DyCheck keypoints.
 //!
 //! Outputs in `OUT/`: `metrics.parquet` (one row per image, scene camera order),
 //! `summary.json` and `summary.md` (also printed).
 
+pub mod tracks;
+
 use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use rayon::prelude::*;
 
-use super::evaluate_tracks::{PckTSummary, TrackingSummary};
 use crate::context::Context;
-use crate::image_io::{self, Image};
+use crate::formats;
 use crate::metrics::lpips::{Lpips, WeightsError};
 use crate::metrics::{psnr::psnr, ssim::ssim};
 use crate::scene::{Camera, Scene};
 use crate::tables::{Provenance, Table, metrics::MetricRow, metrics::MetricsTable};
+use crate::util::fs::dir_label;
+use tracks::{PckTSummary, TrackingSummary};
 
 /// Whether LPIPS is computed.
 #[derive(
@@ -158,13 +161,13 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
     )?;
     let mut summary = summarise(&rows);
     if let Some(model) = &p.model {
-        let scores = super::evaluate_tracks::evaluate_model(&scene, model, ctx)?;
+        let scores = tracks::evaluate_model(&scene, model, ctx)?;
         (summary.tracking, summary.pck_t) = (scores.tracking, scores.pck_t);
     }
     let json = serde_json::to_string_pretty(&summary).context("serialising the summary")?;
-    image_io::write_atomic(&out.join("summary.json"), format!("{json}\n").as_bytes())?;
+    crate::util::fs::write_atomic(&out.join("summary.json"), format!("{json}\n").as_bytes())?;
     let md = summary.markdown();
-    image_io::write_atomic(&out.join("summary.md"), md.as_bytes())?;
+    crate::util::fs::write_atomic(&out.join("summary.md"), md.as_bytes())?;
     print!("{md}");
     if let Some(min) = p.fail_below {
         let all = summary.groups.last().map_or(f64::NAN, |g| g.psnr);
@@ -177,14 +180,6 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
         }
     }
     Ok(())
-}
-
-/// The last component of `dir` as a label.
-pub(crate) fn dir_label(dir: &Path) -> String {
-    dir.canonicalize()
-        .ok()
-        .and_then(|d| d.file_name().map(|n| n.to_string_lossy().into_owned()))
-        .unwrap_or_else(|| dir.display().to_string())
 }
 
 /// Whether camera `c` is scored with its mask.
@@ -249,11 +244,9 @@ fn evaluate_one(
 ) -> anyhow::Result<MetricRow> {
     let gt_path = scene.resolve(&c.image_path);
     let render_path = renders.join(&c.image_path);
-    let load = |p: &Path| -> anyhow::Result<Image> {
-        Ok(image_io::read_png(p)?.rgb_over([1.0; 3]).quantized())
-    };
-    let gt = load(&gt_path)?;
-    let render = load(&render_path)?;
+    let truth = scene.ground_truth(c, [1.0; 3], masked, false)?;
+    let gt = truth.rgb.quantized();
+    let render = formats::png::read_png(&render_path)?.rgb_over([1.0; 3]).quantized();
     if (gt.width, gt.height) != (render.width, render.height) {
         anyhow::bail!(
             "{}: render is {}x{}, the ground truth {} is {}x{}",
@@ -265,24 +258,7 @@ fn evaluate_one(
             gt.height
         );
     }
-    let mask = match (&c.mask_path, masked) {
-        (Some(m), true) => {
-            let path = scene.resolve(m);
-            let img = image_io::read_png(&path)?;
-            if (img.width, img.height) != (gt.width, gt.height) {
-                anyhow::bail!(
-                    "{}: mask is {}x{}, the image is {}x{}",
-                    path.display(),
-                    img.width,
-                    img.height,
-                    gt.width,
-                    gt.height
-                );
-            }
-            Some(img.channel(0).data)
-        }
-        _ => None,
-    };
+    let mask = truth.mask.map(|m| m.data);
     let m = mask.as_deref();
     let ctx = |what: &str| format!("{what} of {}", render_path.display());
     Ok(MetricRow {

@@ -15,19 +15,9 @@
 //! decisions. The row spans themselves come from [`for_each_row`]; the forward pass skips
 //! spans and rows whose pixels have all terminated.
 
-use super::constants::{ALPHA_THRESHOLD, TILE_SIZE};
 use super::project::Splat2d;
-
-/// How alphas near [`ALPHA_THRESHOLD`] are treated.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum Cutoff {
-    /// 3DGS: skip `α < 1/255`, keep `α` unchanged above (a step at the threshold).
-    #[default]
-    Hard,
-    /// `α · s((α − τ)/τ)` with `s` the smoothstep, τ = 1/255: zero below τ, `α` above 2τ,
-    /// continuously differentiable in between. Used by finite-difference tests only.
-    Smooth,
-}
+use crate::render::Cutoff;
+use crate::render::constants::{ALPHA_THRESHOLD, TILE_SIZE};
 
 /// One evaluated (Gaussian, pixel) pair, kept for the VJP.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -39,8 +39,10 @@ use std::path::PathBuf;
 use glam::{DMat3, Mat3};
 use rayon::prelude::*;
 
+use super::graph::metric::{MetricForm, apply};
 use super::graph::search::{self, KeyFrames};
-use super::graph::{MetricForm, Profile, Tracks, apply};
+use super::graph::tracks::Tracks;
+use super::params::Profile;
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -547,11 +549,13 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
     let settings = p.resolve()?;
     let model = crate::model::Model::load(&p.model)?;
     let unc = p.uncertainty.join(crate::tables::uncertainty::UncertaintyTable::file_name());
-    let tracks = super::graph::load_tracks(&model, &unc, ctx)?;
+    let tracks = super::graph::tracks::load_tracks(&model, &unc, ctx)?;
     let key_path = p.keynodes.join(crate::tables::key_nodes::KeyNodesTable::file_name());
     let keys = crate::tables::key_nodes::read(&key_path)?;
     let rotations = match (&p.scene, settings.needs_rotations()) {
-        (Some(dir), true) => super::graph::train_rotations(&crate::scene::Scene::load(dir)?),
+        (Some(dir), true) => {
+            super::graph::metric::train_rotations(&crate::scene::Scene::load(dir)?)
+        }
         (None, true) => anyhow::bail!(
             "edges: the {:?} profile's anisotropic metric (r-xyz {:?}) needs the training cameras: pass --scene",
             settings.profile,
@@ -582,16 +586,16 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stages::bench_graph::synthetic_tracks;
     use crate::stages::graph::search::{argmin_sum_brute, knn_max_brute};
+    use crate::stages::graph::tracks::synthetic_tracks;
     use crate::stages::keynodes::{KeynodeSettings, select};
 
     fn setup(profile: Profile) -> (Tracks, Vec<DMat3>, KeyNodes) {
         let (tracks, rotations, _) = synthetic_tracks(1500, 16, 3, 9);
         let mut ks = KeynodeSettings::defaults(profile);
         ks.voxel_size =
-            crate::stages::keynodes::VoxelSize::Fixed(crate::stages::graph::Amount::Value(0.4));
-        ks.candidates_per_frame = crate::stages::graph::Amount::Value(300.0);
+            crate::stages::keynodes::VoxelSize::Fixed(crate::stages::params::Amount::Value(0.4));
+        ks.candidates_per_frame = crate::stages::params::Amount::Value(300.0);
         ks.spt_u_max = f32::INFINITY;
         let keys = select(&tracks, &ks);
         assert!(keys.num_keys() > 20, "{} keys", keys.num_keys());

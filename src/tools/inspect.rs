@@ -8,9 +8,9 @@ use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
 use arrow::datatypes::DataType;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 
-use super::Error;
-use super::io::type_name;
 use crate::context::Context;
+use crate::tables::Error;
+use crate::tables::io::type_name;
 
 /// Parameters of `usplat4d inspect`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]

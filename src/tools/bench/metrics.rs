@@ -8,10 +8,10 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 
-use super::lpips::{Lpips, WeightsError};
-use super::{psnr::psnr, ssim::ssim};
 use crate::context::Context;
-use crate::image_io::{Image, write_png};
+use crate::formats::png::{Image, write_png};
+use crate::metrics::lpips::{Lpips, WeightsError};
+use crate::metrics::{psnr::psnr, ssim::ssim};
 use crate::scene::{Camera, Scene, Split};
 use crate::stages::evaluate::{MaskMode, evaluate_images};
 use crate::tables::Provenance;
@@ -51,14 +51,8 @@ impl Default for BenchMetricsParams {
 /// A deterministic test image `[size, size, C]`: a smooth pattern plus splitmix64 noise of
 /// amplitude `noise`.
 fn test_image(size: usize, channels: usize, seed: u64, noise: f32) -> Image {
-    let mut s = seed;
-    let mut next = move || {
-        s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = s;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    };
+    let mut rng = crate::util::rng::Rng::from_state(seed);
+    let mut next = move || rng.uniform_f32();
     let mut data = Vec::with_capacity(size * size * channels);
     for y in 0..size {
         for x in 0..size {
@@ -75,9 +69,9 @@ fn test_image(size: usize, channels: usize, seed: u64, noise: f32) -> Image {
     Image { width: size, height: size, channels, data }.quantized()
 }
 
-/// Process CPU time in seconds ([`crate::render::bench::cpu_ms`]).
+/// Process CPU time in seconds ([`crate::tools::bench::render::cpu_ms`]).
 fn cpu_secs() -> Option<f64> {
-    crate::render::bench::cpu_ms().map(|ms| ms / 1e3)
+    crate::tools::bench::render::cpu_ms().map(|ms| ms / 1e3)
 }
 
 /// Wall and CPU time of a run, seconds.
