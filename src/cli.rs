@@ -201,4 +201,39 @@ mod tests {
         let e = exec.execute(&p.stages[1], &p.base).unwrap_err();
         assert!(e.to_string().starts_with("error: unrecognized subcommand 'frobnicate'"), "{e}");
     }
+
+    /// Parse `usplat4d ARGS` and return clap's error message.
+    fn rejected(args: &[&str]) -> String {
+        let argv = std::iter::once("usplat4d").chain(args.iter().copied());
+        match Cli::try_parse_from(argv) {
+            Ok(c) => panic!("accepted: {:?}", c.command),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[test]
+    fn out_of_range_sizes_thresholds_and_counts_name_their_option() {
+        let keynodes = ["keynodes", "--model", "m", "--uncertainty", "u", "--out", "o"];
+        for bad in [["--voxel-size", "0"], ["--voxel-size", "1e-300"], ["--key-budget", "200%"]] {
+            let e = rejected(&[&keynodes[..], &bad[..]].concat());
+            assert!(e.contains(bad[0]), "{bad:?}: {e}");
+        }
+        let unc = ["uncertainty", "--model", "m", "--scene", "s", "--out", "o"];
+        for bad in [["--eta-c", "2"], ["--phi", "0"], ["--contrib-clip-max", "NaN"]] {
+            let e = rejected(&[&unc[..], &bad[..]].concat());
+            assert!(e.contains(bad[0]), "{bad:?}: {e}");
+        }
+        let e = rejected(&["evaluate", "--renders", "r", "--scene", "s", "--fail-below", "NaN"]);
+        assert!(e.contains("--fail-below"), "{e}");
+        let e = rejected(&["segment", "--edges", "e", "--out", "o", "--k", "0"]);
+        assert!(e.contains("--k"), "{e}");
+        let ok = ["keynodes", "--model", "m", "--uncertainty", "u", "--out", "o"];
+        Cli::try_parse_from(std::iter::once("usplat4d").chain(ok).chain([
+            "--voxel-size",
+            "2%",
+            "--key-budget",
+            "2%",
+        ]))
+        .unwrap();
+    }
 }

@@ -81,6 +81,53 @@ impl From<Amount> for String {
     }
 }
 
+/// Option-value parsers that clap runs (`#[arg(value_parser = ...)]`), so that a value out
+/// of range is an error naming the option instead of a silently odd result.
+pub mod check {
+    use super::Amount;
+
+    fn number<T: std::str::FromStr>(s: &str) -> Result<T, String> {
+        s.trim().parse().map_err(|_| format!("'{s}' is not a number"))
+    }
+
+    /// A finite number (`NaN` and infinities are rejected).
+    pub fn finite(s: &str) -> Result<f64, String> {
+        let v: f64 = number(s)?;
+        if v.is_finite() { Ok(v) } else { Err(format!("{v} is not a finite number")) }
+    }
+
+    /// A finite number above 0 (sizes, thresholds, scales).
+    pub fn positive(s: &str) -> Result<f32, String> {
+        let v: f32 = number(s)?;
+        if v.is_finite() && v > 0.0 {
+            Ok(v)
+        } else {
+            Err(format!("{v} must be a finite number above 0"))
+        }
+    }
+
+    /// A number in (0, 1] (a threshold on colours in [0, 1]).
+    pub fn unit(s: &str) -> Result<f32, String> {
+        let v = positive(s)?;
+        if v <= 1.0 { Ok(v) } else { Err(format!("{v} must be in (0, 1]")) }
+    }
+
+    /// A count of at least 1.
+    pub fn count(s: &str) -> Result<usize, String> {
+        let v: usize = s.trim().parse().map_err(|_| format!("'{s}' is not a count"))?;
+        if v >= 1 { Ok(v) } else { Err("must be at least 1".into()) }
+    }
+
+    /// A share of a total: a count above 0, or a percentage in (0%, 100%].
+    pub fn share(s: &str) -> Result<Amount, String> {
+        match s.parse::<Amount>()? {
+            Amount::Value(v) if v > 0.0 => Ok(Amount::Value(v)),
+            Amount::Fraction(f) if f > 0.0 && f <= 1.0 => Ok(Amount::Fraction(f)),
+            _ => Err(format!("'{s}' must be a count above 0 or a percentage in (0%, 100%]")),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -94,5 +141,15 @@ mod tests {
         assert!("x%".parse::<Amount>().is_err());
         let s: String = Amount::Fraction(0.02).into();
         assert_eq!(s.parse::<Amount>().unwrap(), Amount::Fraction(0.02));
+    }
+
+    #[test]
+    fn checks_reject_out_of_range_values() {
+        assert_eq!(check::share("2%").unwrap(), Amount::Fraction(0.02));
+        assert!(check::share("200%").is_err() && check::share("0").is_err());
+        assert!(check::unit("2").is_err() && check::unit("0").is_err());
+        assert_eq!(check::unit("0.3").unwrap(), 0.3);
+        assert!(check::finite("NaN").is_err() && check::finite("inf").is_err());
+        assert!(check::positive("-1").is_err() && check::count("0").is_err());
     }
 }

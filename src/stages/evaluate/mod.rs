@@ -103,7 +103,7 @@ pub struct EvaluateParams {
     #[serde(default)]
     pub out: Option<PathBuf>,
     /// Exit with status 1 when the mean PSNR over all images is below this value (dB).
-    #[arg(long, value_name = "PSNR")]
+    #[arg(long, value_name = "PSNR", value_parser = crate::stages::params::check::finite)]
     #[serde(default)]
     pub fail_below: Option<f64>,
     /// LPIPS: auto (when installed), off, or require.

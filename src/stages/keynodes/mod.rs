@@ -65,7 +65,7 @@ use std::path::PathBuf;
 use rayon::prelude::*;
 
 use super::graph::tracks::Tracks;
-use super::params::{Amount, Profile};
+use super::params::{Amount, Profile, check};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
 use crate::util::rng::rank_key;
@@ -98,7 +98,13 @@ impl std::str::FromStr for VoxelSize {
         if s.trim() == "auto" {
             return Ok(VoxelSize::Auto);
         }
-        s.parse().map(VoxelSize::Fixed).map_err(|e| format!("{e}, or auto"))
+        let edge: Amount = s.parse().map_err(|e| format!("{e}, or auto"))?;
+        // Below this a voxel index no longer fits the grid (f32 positions): the edge
+        // would silently collapse the grid to a few cells.
+        match edge {
+            Amount::Value(v) | Amount::Fraction(v) if v >= 1e-9 => Ok(VoxelSize::Fixed(edge)),
+            _ => Err(format!("voxel edge '{s}' must be at least 1e-9 (or a percentage), or auto")),
+        }
     }
 }
 
@@ -265,7 +271,7 @@ pub struct KeynodeParams {
     #[serde(default)]
     pub profile: Profile,
     /// Confident Gaussians per frame: a count or a percentage of N [paper 2%, release 1000].
-    #[arg(long, help_heading = "Method")]
+    #[arg(long, value_parser = check::share, help_heading = "Method")]
     #[serde(default)]
     pub candidates_per_frame: Option<Amount>,
     /// Voxel edge: world units, a percentage of the frame's bounding-box diagonal, or
@@ -275,7 +281,7 @@ pub struct KeynodeParams {
     pub voxel_size: Option<VoxelSize>,
     /// Key count targeted by `voxel-size auto`: a count or a percentage of N [paper 2%
     /// (1:49 key/non-key), release 1500].
-    #[arg(long, help_heading = "Method")]
+    #[arg(long, value_parser = check::share, help_heading = "Method")]
     #[serde(default)]
     pub key_budget: Option<Amount>,
     /// Pick within a voxel [paper random, release lowest-contribution].

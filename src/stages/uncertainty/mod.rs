@@ -26,7 +26,7 @@
 
 use std::path::PathBuf;
 
-use super::params::Profile;
+use super::params::{Profile, check};
 use crate::context::Context;
 use crate::render::{
     ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, RenderAux, RenderCamera,
@@ -88,8 +88,8 @@ pub struct UncertaintyParams {
     #[arg(long, value_enum, default_value_t = Profile::Paper, help_heading = "Method")]
     #[serde(default)]
     pub profile: Profile,
-    /// Colour-error threshold η_c [paper 0.5, release 0.3].
-    #[arg(long, help_heading = "Method")]
+    /// Colour-error threshold η_c, in (0, 1] [paper 0.5, release 0.3].
+    #[arg(long, value_parser = check::unit, help_heading = "Method")]
     #[serde(default)]
     pub eta_c: Option<f32>,
     /// Pixels tested [paper all-covered-pixels, release centre-pixel].
@@ -113,7 +113,7 @@ pub struct UncertaintyParams {
     #[serde(default)]
     pub fg_mask_gate: Option<bool>,
     /// φ, the uncertainty of unconverged or unseen Gaussians [1e8].
-    #[arg(long, help_heading = "Method")]
+    #[arg(long, value_parser = check::positive, help_heading = "Method")]
     #[serde(default)]
     pub phi: Option<f32>,
     /// Gaussians listed [paper all, release dynamic-only].
@@ -125,7 +125,7 @@ pub struct UncertaintyParams {
     #[serde(default)]
     pub contrib_norm_target: Option<f32>,
     /// Clip of the normalised contribution [10].
-    #[arg(long, help_heading = "Method")]
+    #[arg(long, value_parser = check::positive, help_heading = "Method")]
     #[serde(default)]
     pub contrib_clip_max: Option<f32>,
 }
