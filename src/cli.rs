@@ -51,6 +51,9 @@ pub enum Command {
     Evaluate(crate::stages::evaluate::EvaluateParams),
     /// One self-contained HTML report of a run: tables, charts, image grids, graph figures.
     Report(crate::stages::report::ReportParams),
+    /// The paper's tables (Table 2 form per scene and averaged, tracking, ablations) from
+    /// many evaluations: benchmark.md and benchmark.parquet.
+    Benchmark(crate::stages::benchmark::BenchmarkParams),
     /// LPIPS weights management.
     #[command(subcommand)]
     Lpips(crate::metrics::lpips::LpipsCommand),
@@ -99,6 +102,7 @@ impl Command {
             Command::Segment(_) => "segment",
             Command::Evaluate(_) => "evaluate",
             Command::Report(_) => "report",
+            Command::Benchmark(_) => "benchmark",
             Command::Lpips(_) => "lpips",
             Command::Bench(_) => "bench",
             Command::Pipeline(_) => "pipeline",
@@ -124,6 +128,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Segment(p) => stages::segment::run(&p, ctx),
         Command::Evaluate(p) => stages::evaluate::run(&p, ctx),
         Command::Report(p) => stages::report::run(&p, ctx),
+        Command::Benchmark(p) => stages::benchmark::run(&p, ctx),
         Command::Lpips(c) => metrics::lpips::run_command(&c, ctx),
         Command::Bench(BenchCommand::Render(p)) => tools::bench::render::run(&p, ctx),
         Command::Bench(BenchCommand::Graph(p)) => tools::bench::graph::run(&p, ctx),

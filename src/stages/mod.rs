@@ -1,5 +1,6 @@
 //! The USplat4D stages, each a pure function of its input tables and parameters.
 
+pub mod benchmark;
 pub mod edges;
 pub mod evaluate;
 pub mod graph;

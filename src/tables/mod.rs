@@ -7,6 +7,7 @@
 //! normalised quaternions, unique ids, frames without gaps). Every error names the file, and
 //! where it applies the column and the row or frame.
 
+pub mod benchmark;
 pub mod cameras;
 pub mod edges;
 pub mod gaussians;
@@ -129,5 +130,6 @@ pub fn registry() -> Vec<TableKind> {
         entry::<key_nodes::KeyNodesTable>(),
         entry::<edges::EdgesTable>(),
         entry::<segments::SegmentsTable>(),
+        entry::<benchmark::BenchmarkTable>(),
     ]
 }

@@ -19,6 +19,7 @@
 //! Outputs in `OUT/`: `metrics.parquet` (one row per image, scene camera order),
 //! `summary.json` and `summary.md` (also printed).
 
+pub mod compare;
 pub mod tracks;
 
 use std::path::{Path, PathBuf};
@@ -120,18 +121,17 @@ pub struct EvaluateParams {
     #[arg(long, value_name = "MODEL_DIR")]
     #[serde(default)]
     pub model: Option<PathBuf>,
-    /// Instead of evaluating, print two evaluations side by side (output directories of
-    /// `evaluate` or their metrics.parquet files).
-    #[arg(long, num_args = 2, value_names = ["A", "B"], conflicts_with_all = ["renders", "scene", "out", "fail_below", "model"])]
+    /// Instead of evaluating, print evaluations side by side with their differences to the
+    /// first, tracking included (output directories of `evaluate` or their metrics files).
+    #[arg(long, num_args = 2.., value_names = ["A", "B"], conflicts_with_all = ["renders", "scene", "out", "fail_below", "model"])]
     #[serde(default)]
     pub compare: Option<Vec<PathBuf>>,
 }
 
 /// Run the stage.
 pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
-    if let Some(pair) = &p.compare {
-        let [a, b] = pair.as_slice() else { anyhow::bail!("--compare takes two evaluations") };
-        print!("{}", compare(a, b)?);
+    if let Some(paths) = &p.compare {
+        print!("{}", compare::compare(paths)?);
         return Ok(());
     }
     let (Some(renders), Some(scene_dir), Some(out)) = (&p.renders, &p.scene, &p.out) else {
@@ -399,42 +399,6 @@ impl Summary {
         }
         md
     }
-}
-
-/// Read the rows of an evaluation: an `evaluate` output directory or its metrics file.
-fn read_rows(p: &Path) -> anyhow::Result<Vec<MetricRow>> {
-    let file = if p.is_dir() { p.join(MetricsTable::file_name()) } else { p.to_path_buf() };
-    Ok(crate::tables::metrics::read(&file)?)
-}
-
-/// Side-by-side Markdown table of evaluations `a` and `b` with differences (B − A).
-pub fn compare(a: &Path, b: &Path) -> anyhow::Result<String> {
-    let (sa, sb) = (summarise(&read_rows(a)?), summarise(&read_rows(b)?));
-    let [p, s, l] = sa.names();
-    let mut md = format!(
-        "# {} (A) vs {} (B) on {}\n\n| views | images | {p} A | {p} B | Δ | {s} A | {s} B | Δ | {l} A | {l} B | Δ |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
-        sa.method, sb.method, sa.scene
-    );
-    for ga in &sa.groups {
-        let Some(gb) = sb.groups.iter().find(|g| g.label == ga.label) else { continue };
-        let dl = ga.lpips.zip(gb.lpips).map(|(x, y)| y - x);
-        md.push_str(&format!(
-            "| {} | {}/{} | {:.2} | {:.2} | {:+.2} | {:.3} | {:.3} | {:+.3} | {} | {} | {} |\n",
-            ga.label,
-            ga.images,
-            gb.images,
-            ga.psnr,
-            gb.psnr,
-            gb.psnr - ga.psnr,
-            ga.ssim,
-            gb.ssim,
-            gb.ssim - ga.ssim,
-            fmt_opt(ga.lpips, 3),
-            fmt_opt(gb.lpips, 3),
-            dl.map_or("-".into(), |d| format!("{d:+.3}")),
-        ));
-    }
-    Ok(md)
 }
 
 #[cfg(test)]
