@@ -8,10 +8,10 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use super::Error;
-use super::cache::{RunCache, remove_path};
+use super::cache::{RunCache, remove_path, sweep_restores};
 use super::dag::Dag;
 use super::hash::{self, Hasher};
 use super::lock::{Lock, LockEntry};
@@ -38,11 +38,15 @@ pub struct InProcess {
 
 impl Executor for InProcess {
     fn execute(&mut self, stage: &Stage, base: &Path) -> anyhow::Result<()> {
-        use clap::Parser;
-        let cli = crate::cli::Cli::try_parse_from(
+        let cli = crate::cli::Cli::try_parse_args(
             std::iter::once("usplat4d".to_string()).chain(stage.argv.clone()),
         )
-        .map_err(|e| anyhow::anyhow!("{}", e.to_string().trim_end()))?;
+        .map_err(|e| {
+            // clap echoes the offending value, which a parameter may make megabytes long
+            let text = e.to_string();
+            let words: Vec<_> = text.trim_end().split(' ').map(super::spec::shown).collect();
+            anyhow::anyhow!("{}", words.join(" "))
+        })?;
         if matches!(cli.command, crate::cli::Command::Pipeline(_)) {
             anyhow::bail!("a stage cannot run `pipeline`");
         }
@@ -224,6 +228,16 @@ impl<'a> Runner<'a> {
         let only = select(self.p, &opts.only, "--only")?;
         let names: Vec<&str> = self.p.stages.iter().map(|s| s.name.as_str()).collect();
         self.lock.retain(&names);
+        let parents: BTreeSet<PathBuf> = self
+            .p
+            .stages
+            .iter()
+            .flat_map(|s| &s.outs)
+            .filter_map(|o| self.p.path(o).parent().map(Path::to_path_buf))
+            .collect();
+        for dir in &parents {
+            sweep_restores(dir)?;
+        }
         let mut done = Vec::new();
         let order = self.dag.order.clone();
         for i in order {
