@@ -7,7 +7,8 @@
 //! Readers never hand parquet-rs a file it could panic on: [`load_metadata`] checks the magic
 //! bytes and that every column chunk lies inside the file before anything is decoded, and
 //! [`read_row_groups`] feeds the decoder through a page reader that rejects dictionary-encoded
-//! data pages of a chunk without a dictionary page (parquet-rs 60 panics on both).
+//! data pages of a chunk without a dictionary page and pages in encodings other than PLAIN,
+//! RLE and dictionary (parquet-rs 60 panics on corrupt ones of each).
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -475,6 +476,21 @@ impl<P: PageReader> CheckedPages<P> {
                     "corrupt column chunk: a dictionary-encoded data page without a dictionary page"
                         .into(),
                 ));
+            }
+            Some(Page::DataPage { encoding, .. } | Page::DataPageV2 { encoding, .. })
+                if !matches!(
+                    encoding,
+                    Encoding::PLAIN
+                        | Encoding::PLAIN_DICTIONARY
+                        | Encoding::RLE_DICTIONARY
+                        | Encoding::RLE
+                ) =>
+            {
+                // parquet-rs 60 panics on corrupt BYTE_STREAM_SPLIT and DELTA pages; no
+                // writer of usplat4d tables (ours, pyarrow's defaults) uses them
+                return Err(ParquetError::General(format!(
+                    "unsupported page encoding {encoding} (tables use PLAIN, RLE and dictionary pages)"
+                )));
             }
             _ => {}
         }
