@@ -21,12 +21,50 @@ pub struct Cli {
     /// More diagnostic output (repeat for more).
     #[arg(long, short, global = true, action = clap::ArgAction::Count)]
     pub verbose: u8,
-    /// Number of worker threads (default: all cores). Results do not depend on it.
-    #[arg(long, global = true, value_name = "N")]
+    /// Number of worker threads: 0 means all cores (the default); at most 4 per core.
+    /// Results do not depend on it.
+    #[arg(long, global = true, value_name = "N", value_parser = parse_threads)]
     pub threads: Option<usize>,
     /// The stage to run.
     #[command(subcommand)]
     pub command: Command,
+}
+
+/// Threads per core that `--threads` allows: more only adds scheduling overhead (100,000
+/// threads ran for minutes at a load of 1,300).
+pub const MAX_THREADS_PER_CORE: usize = 4;
+
+fn parse_threads(s: &str) -> Result<usize, String> {
+    let n: usize = s.parse().map_err(|e| format!("{e}"))?;
+    let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+    let max = MAX_THREADS_PER_CORE * cores;
+    if n > max {
+        return Err(format!(
+            "at most {max} threads ({MAX_THREADS_PER_CORE} per core, {cores} cores); 0 means all cores"
+        ));
+    }
+    Ok(n)
+}
+
+impl Cli {
+    /// Parse a command line (`args[0]` is the program name). A value that looks like a
+    /// negative number (`--k -1`) is taken as the option's value, so the option's own parser
+    /// rejects it by name instead of clap reporting an unexpected argument `-1`.
+    pub fn try_parse_args<I, T>(args: I) -> Result<Cli, clap::Error>
+    where
+        I: IntoIterator<Item = T>,
+        T: Into<std::ffi::OsString> + Clone,
+    {
+        use clap::{CommandFactory, FromArgMatches};
+        fn negative_values(cmd: clap::Command) -> clap::Command {
+            cmd.mut_args(|a| {
+                if a.get_action().takes_values() { a.allow_negative_numbers(true) } else { a }
+            })
+            .mut_subcommands(negative_values)
+        }
+        let matches = negative_values(Cli::command()).try_get_matches_from(args)?;
+        Cli::from_arg_matches(&matches)
+    }
 }
 
 /// One subcommand per stage, plus the pipeline runner and table inspection.
@@ -152,10 +190,15 @@ pub struct InProcess {
 
 impl Executor for InProcess {
     fn execute(&mut self, stage: &Stage, base: &Path) -> anyhow::Result<()> {
-        use clap::Parser;
         let cli =
-            Cli::try_parse_from(std::iter::once("usplat4d".to_string()).chain(stage.argv.clone()))
-                .map_err(|e| anyhow::anyhow!("{}", e.to_string().trim_end()))?;
+            Cli::try_parse_args(std::iter::once("usplat4d".to_string()).chain(stage.argv.clone()))
+                .map_err(|e| {
+                    // clap echoes the offending value, which a parameter may make megabytes long
+                    let text = e.to_string();
+                    let words: Vec<_> =
+                        text.trim_end().split(' ').map(crate::pipeline::spec::shown).collect();
+                    anyhow::anyhow!("{}", words.join(" "))
+                })?;
         if matches!(cli.command, Command::Pipeline(_)) {
             anyhow::bail!("a stage cannot run `pipeline`");
         }
@@ -192,6 +235,28 @@ impl Executor for InProcess {
 mod tests {
     use super::*;
     use crate::pipeline::spec::Pipeline;
+
+    /// A stage whose command line holds a huge value fails with a short message: the value
+    /// clap echoes is cut.
+    #[test]
+    fn a_huge_value_in_a_stage_command_is_cut_in_its_error() {
+        let huge = "7".repeat(2_000_000);
+        let text = format!(
+            "params: {{n: '{huge}'}}\nstages:\n  a: {{cmd: 'segment --edges e --out o --k ${{n}}'}}\n"
+        );
+        let p = Pipeline::parse(Path::new("p.yaml"), &text, &[]).unwrap();
+        let err = InProcess { ctx: Context::quiet() }
+            .execute(&p.stages[0], Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(err.len() < 300, "{} characters", err.len());
+        assert!(
+            err.contains("'7777777777")
+                && err.contains("(2000002 characters)")
+                && err.contains("--k <K>"),
+            "{err}"
+        );
+    }
 
     #[test]
     fn the_in_process_executor_reports_bad_commands_without_running_them() {
@@ -240,5 +305,108 @@ mod tests {
             "2%",
         ]))
         .unwrap();
+    }
+}
+
+#[cfg(test)]
+mod parse_tests {
+    use clap::CommandFactory;
+
+    use super::*;
+
+    fn parse(args: &[&str]) -> Result<Cli, String> {
+        Cli::try_parse_args(std::iter::once("usplat4d").chain(args.iter().copied()))
+            .map_err(|e| e.to_string().lines().next().unwrap_or_default().to_string())
+    }
+
+    #[test]
+    fn threads_are_capped_at_four_per_core_and_zero_means_all_cores() {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let max = 4 * cores;
+        assert_eq!(
+            parse(&["--threads", "100000", "check", "x"]).err().unwrap(),
+            format!(
+                "error: invalid value '100000' for '--threads <N>': at most {max} threads (4 per core, {cores} cores); 0 means all cores"
+            )
+        );
+        let ok = |n: usize| parse(&["--threads", &n.to_string(), "check", "x"]).unwrap().threads;
+        assert_eq!(ok(max), Some(max));
+        assert_eq!(ok(0), Some(0));
+        let help = Cli::command().render_long_help().to_string();
+        assert!(help.contains("0 means all cores"), "{help}");
+        assert!(help.contains("at most 4 per core"), "{help}");
+    }
+
+    /// `--opt -1` is the value -1, which the option's parser then accepts or rejects by name,
+    /// never "unexpected argument '-1'"; checked on every option of every subcommand.
+    #[test]
+    fn negative_numbers_are_values_of_their_option() {
+        assert_eq!(
+            parse(&["segment", "--k", "-1"]).err().unwrap(),
+            "error: invalid value '-1' for '--k <K>': '-1' is not a count"
+        );
+        fn walk(cmd: &clap::Command, path: &mut Vec<String>, bad: &mut Vec<String>) {
+            for arg in cmd.get_arguments() {
+                let Some(long) = arg.get_long() else { continue };
+                if !arg.get_action().takes_values() || arg.is_global_set() && !path.is_empty() {
+                    continue;
+                }
+                let opt = format!("--{long}");
+                let args: Vec<&str> =
+                    path.iter().map(String::as_str).chain([opt.as_str(), "-1"]).collect();
+                if let Err(e) = parse(&args)
+                    && (e.contains("unexpected argument") || e.contains("value is required"))
+                {
+                    bad.push(format!("{}: {e}", args.join(" ")));
+                }
+            }
+            for sub in cmd.get_subcommands() {
+                path.push(sub.get_name().to_string());
+                walk(sub, path, bad);
+                path.pop();
+            }
+        }
+        let mut bad = Vec::new();
+        walk(&Cli::command(), &mut Vec::new(), &mut bad);
+        assert!(bad.is_empty(), "{}", bad.join("\n"));
+    }
+
+    /// The same stage written to two output directories gives the same table bytes: the
+    /// output path is not part of the provenance.
+    #[test]
+    fn table_bytes_do_not_depend_on_the_output_path() {
+        use crate::tables::uncertainty::{UncertaintyFrame, UncertaintyWriter};
+        let dir = tempfile::tempdir().unwrap();
+        let (_, model) = crate::datasets::demo::write_demo_scene(dir.path(), 3).unwrap();
+        let ids = crate::model::Model::load(&model).unwrap().gaussians.id;
+        let n = ids.len();
+        let unc = dir.path().join("unc");
+        let mut w =
+            UncertaintyWriter::create(&unc.join("uncertainty.parquet"), &ids, &Default::default())
+                .unwrap();
+        for t in 0..3 {
+            w.write(&UncertaintyFrame {
+                frame: t,
+                sum_w2: vec![1.0; n],
+                sum_w: vec![1.0; n],
+                n_pixels: vec![4; n],
+                converged: (0..n).map(|i| (i + t as usize) % 3 != 0).collect(),
+                u: (0..n).map(|i| 0.5 + (i % 7) as f32).collect(),
+            })
+            .unwrap();
+        }
+        w.finish().unwrap();
+        let run = |out: &str| {
+            let out = dir.path().join(out);
+            let args = ["keynodes", "--model", model.to_str().unwrap(), "--uncertainty"];
+            let cli = parse(
+                &[&args[..], &[unc.to_str().unwrap(), "--out", out.to_str().unwrap()]].concat(),
+            )
+            .unwrap();
+            dispatch(cli.command, &Context::quiet()).unwrap();
+            std::fs::read(out.join("key_nodes.parquet")).unwrap()
+        };
+        let a = run("a");
+        assert!(a == run("elsewhere/b"), "key_nodes.parquet differs between output directories");
     }
 }

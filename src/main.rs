@@ -2,12 +2,11 @@
 
 use std::process::ExitCode;
 
-use clap::Parser;
 use usplat4d::cli::{Cli, dispatch};
 use usplat4d::context::Context;
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = Cli::try_parse_args(std::env::args_os()).unwrap_or_else(|e| e.exit());
     let ctx = Context { quiet: cli.quiet, verbose: cli.verbose };
     let level = match cli.verbose {
         0 => tracing::Level::WARN,

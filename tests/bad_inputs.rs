@@ -69,3 +69,71 @@ fn every_case_has_a_test() {
     }
     assert!(untested.is_empty(), "bad inputs without a test: {untested:?}");
 }
+
+/// The Parquet files that crashed parquet-rs 60 inside its footer and dictionary decoding
+/// (`../shared/data/bad-parquet/`): every command that reads them exits 2 with an error
+/// naming the file, never a panic (101).
+#[test]
+fn corrupted_parquet_exits_2_naming_the_file() {
+    let Some(dir) = crate::util::shared_data("bad-parquet") else {
+        eprintln!("SKIP corrupted_parquet_exits_2_naming_the_file: no ../shared/data/bad-parquet");
+        return;
+    };
+    let work = Dir::new();
+    let (scene, model) =
+        usplat4d::render::synthetic::write_demo_scene(&work.join("valid"), 2).unwrap();
+    let (scene, model) = (scene.to_str().unwrap().to_string(), model.to_str().unwrap().to_string());
+    let mut files: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
+        .collect();
+    files.sort();
+    for (i, f) in files.iter().enumerate() {
+        let bytes = std::fs::read(f).unwrap();
+        let kind = ["cameras", "gaussians", "uncertainty", "edges"]
+            .into_iter()
+            .find(|k| bytes.windows(k.len() + 1).any(|w| w[1..] == *k.as_bytes() && w[0] < b' '))
+            .unwrap_or_else(|| panic!("{}: unknown table kind", f.display()));
+        let case = work.join(&format!("case{i}"));
+        std::fs::create_dir_all(&case).unwrap();
+        let file = case.join(format!("{kind}.parquet"));
+        std::fs::write(&file, &bytes).unwrap();
+        let case = case.to_str().unwrap();
+        let out = work.join(&format!("out{i}"));
+        let out = out.to_str().unwrap();
+        let mut commands: Vec<Vec<&str>> = vec![vec!["inspect", file.to_str().unwrap()]];
+        match kind {
+            "cameras" => {
+                commands.push(vec!["check", case]);
+                commands.push(vec!["render", "--model", &model, "--scene", case, "--out", out]);
+            }
+            "gaussians" => {
+                std::fs::copy(
+                    format!("{model}/trajectories.parquet"),
+                    format!("{case}/trajectories.parquet"),
+                )
+                .unwrap();
+                commands.push(vec!["check", case]);
+                commands.push(vec!["render", "--model", case, "--scene", &scene, "--out", out]);
+            }
+            "uncertainty" => commands.push(vec![
+                "keynodes",
+                "--model",
+                &model,
+                "--uncertainty",
+                case,
+                "--out",
+                out,
+            ]),
+            _ => commands.push(vec!["segment", "--edges", case, "--out", out]),
+        }
+        for args in commands {
+            let err = work.fails(&args, 2);
+            assert!(
+                err.starts_with(&format!("error: {}: ", file.display())),
+                "usplat4d {args:?}: {err}"
+            );
+        }
+    }
+}

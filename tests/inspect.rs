@@ -39,6 +39,12 @@ fn inspect_prints_schema_stats_and_rows() {
 fn inspect_rejects_non_parquet_with_file_name() {
     let dir = Dir::new();
     std::fs::write(dir.join("x.parquet"), b"not parquet").unwrap();
-    let err = dir.fails(&["inspect", "x.parquet"], 2);
-    assert!(err.starts_with("error: x.parquet: Parquet error:"), "{err}");
+    std::fs::write(dir.join("params.json"), br#"{"seed": 1, "frames": [1, 2, 3]}"#).unwrap();
+    for file in ["x.parquet", "params.json"] {
+        let err = dir.fails(&["inspect", file], 2);
+        assert_eq!(
+            err.trim_end(),
+            format!("error: {file}: not a Parquet file (it does not start with the bytes PAR1)")
+        );
+    }
 }

@@ -6,8 +6,10 @@
 //! runs); `runs/<stage key>.json` lists, per output path, its [`Tree`] (the files and their
 //! hashes) and when the entry was last used. The cache is capped in bytes of objects; past the
 //! cap, the least recently used run entries are dropped with the objects only they referenced.
-//! Restores go through a temporary sibling that is renamed into place, and the restored
-//! output is re-hashed and must match, so a damaged cache falls back to running the stage.
+//! Restores go through a temporary sibling (`.restore-XXXXXX/`) that is renamed into place,
+//! and the restored output is re-hashed and must match, so a damaged cache falls back to
+//! running the stage. A run killed mid-restore leaves that sibling behind; every run first
+//! removes such leftovers beside its outputs ([`sweep_restores`]).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -47,6 +49,31 @@ pub fn remove_path(p: &Path) -> Result<(), Error> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
         Err(e) => Err(Error::Io { path: p.into(), source: e }),
     }
+}
+
+/// Prefix of the staging directory of a restore, beside the output it restores.
+const RESTORE_PREFIX: &str = ".restore-";
+
+/// Remove the staging directories that a killed restore left in `dir` (directories named
+/// `.restore-` and six characters, as [`RunCache::restore`] creates them).
+pub fn sweep_restores(dir: &Path) -> Result<(), Error> {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(Error::Io { path: dir.into(), source: e }),
+    };
+    for e in entries {
+        let e = e.map_err(Error::io(dir))?;
+        let name = e.file_name();
+        let staged = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(RESTORE_PREFIX))
+            .is_some_and(|r| r.len() == 6 && r.bytes().all(|b| b.is_ascii_alphanumeric()));
+        if staged && e.file_type().map_err(Error::io(e.path()))?.is_dir() {
+            remove_path(&e.path())?;
+        }
+    }
+    Ok(())
 }
 
 impl RunCache {
@@ -142,7 +169,8 @@ impl RunCache {
             let parent = dest.parent().unwrap_or(base).to_path_buf();
             std::fs::create_dir_all(&parent).map_err(Error::io(&parent))?;
             let tmp = tempfile::Builder::new()
-                .prefix(".restore-")
+                .prefix(RESTORE_PREFIX)
+                .rand_bytes(6)
                 .tempdir_in(&parent)
                 .map_err(Error::io(&parent))?;
             let staged = tmp.path().join("out");

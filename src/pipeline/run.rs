@@ -8,10 +8,10 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use super::Error;
-use super::cache::{RunCache, remove_path};
+use super::cache::{RunCache, remove_path, sweep_restores};
 use super::dag::Dag;
 use super::hash::{self, Hasher};
 use super::lock::{Lock, LockEntry};
@@ -175,6 +175,16 @@ impl<'a> Runner<'a> {
         let only = select(self.p, &opts.only, "--only")?;
         let names: Vec<&str> = self.p.stages.iter().map(|s| s.name.as_str()).collect();
         self.lock.retain(&names);
+        let parents: BTreeSet<PathBuf> = self
+            .p
+            .stages
+            .iter()
+            .flat_map(|s| &s.outs)
+            .filter_map(|o| self.p.path(o).parent().map(Path::to_path_buf))
+            .collect();
+        for dir in &parents {
+            sweep_restores(dir)?;
+        }
         let mut done = Vec::new();
         let order = self.dag.order.clone();
         for i in order {

@@ -13,6 +13,7 @@ use std::path::{Component, Path, PathBuf};
 
 use serde::Deserialize;
 use serde::de::{self, MapAccess, SeqAccess, Visitor};
+use serde_saphyr::Spanned;
 
 use super::Error;
 
@@ -44,36 +45,6 @@ pub struct Pipeline {
     pub stages: Vec<Stage>,
 }
 
-/// A YAML map that keeps declaration order (duplicate keys are rejected by the parser).
-#[derive(Debug)]
-struct Ordered<T>(Vec<(String, T)>);
-
-impl<T> Default for Ordered<T> {
-    fn default() -> Self {
-        Ordered(Vec::new())
-    }
-}
-
-impl<'de, T: Deserialize<'de>> Deserialize<'de> for Ordered<T> {
-    fn deserialize<D: de::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        struct V<T>(std::marker::PhantomData<T>);
-        impl<'de, T: Deserialize<'de>> Visitor<'de> for V<T> {
-            type Value = Ordered<T>;
-            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
-                f.write_str("a map")
-            }
-            fn visit_map<A: MapAccess<'de>>(self, mut m: A) -> Result<Self::Value, A::Error> {
-                let mut out = Vec::new();
-                while let Some((k, v)) = m.next_entry::<String, T>()? {
-                    out.push((k, v));
-                }
-                Ok(Ordered(out))
-            }
-        }
-        d.deserialize_map(V(std::marker::PhantomData))
-    }
-}
-
 /// A parameter or foreach value: a scalar (kept as its canonical text) or a flat map of
 /// scalars (foreach items only).
 #[derive(Debug, Clone, PartialEq)]
@@ -82,82 +53,286 @@ enum Value {
     Map(BTreeMap<String, String>),
 }
 
-impl<'de> Deserialize<'de> for Value {
+/// A YAML node as parsed, with its location. The schema is checked by hand on this tree
+/// (not by serde), so that every error names its key (`stage `a`: `deps``), what was
+/// expected and what was found, with the line and column.
+#[derive(Debug)]
+enum Node {
+    Null,
+    /// A scalar as its canonical text (`0.50` → `0.5`).
+    Scalar(String),
+    Seq(Vec<Spanned<Node>>),
+    /// Keys in declaration order (duplicate keys are rejected by the parser).
+    Map(Vec<(String, Spanned<Node>)>),
+}
+
+impl<'de> Deserialize<'de> for Node {
     fn deserialize<D: de::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         struct V;
         impl<'de> Visitor<'de> for V {
-            type Value = Value;
+            type Value = Node;
             fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
-                f.write_str("a string, number, boolean or a map of them")
+                f.write_str("a YAML value")
             }
-            fn visit_bool<E: de::Error>(self, v: bool) -> Result<Value, E> {
-                Ok(Value::Scalar(v.to_string()))
+            fn visit_bool<E: de::Error>(self, v: bool) -> Result<Node, E> {
+                Ok(Node::Scalar(v.to_string()))
             }
-            fn visit_i64<E: de::Error>(self, v: i64) -> Result<Value, E> {
-                Ok(Value::Scalar(v.to_string()))
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<Node, E> {
+                Ok(Node::Scalar(v.to_string()))
             }
-            fn visit_u64<E: de::Error>(self, v: u64) -> Result<Value, E> {
-                Ok(Value::Scalar(v.to_string()))
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<Node, E> {
+                Ok(Node::Scalar(v.to_string()))
             }
-            fn visit_f64<E: de::Error>(self, v: f64) -> Result<Value, E> {
-                Ok(Value::Scalar(v.to_string()))
+            fn visit_f64<E: de::Error>(self, v: f64) -> Result<Node, E> {
+                Ok(Node::Scalar(v.to_string()))
             }
-            fn visit_str<E: de::Error>(self, v: &str) -> Result<Value, E> {
-                Ok(Value::Scalar(v.to_string()))
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<Node, E> {
+                Ok(Node::Scalar(v.to_string()))
             }
-            fn visit_map<A: MapAccess<'de>>(self, mut m: A) -> Result<Value, A::Error> {
-                let mut out = BTreeMap::new();
-                while let Some((k, v)) = m.next_entry::<String, Value>()? {
-                    match v {
-                        Value::Scalar(s) => out.insert(k, s),
-                        Value::Map(_) => {
-                            return Err(de::Error::custom(format!(
-                                "`{k}`: nested maps are not supported, use scalars"
-                            )));
-                        }
-                    };
+            fn visit_unit<E: de::Error>(self) -> Result<Node, E> {
+                Ok(Node::Null)
+            }
+            fn visit_none<E: de::Error>(self) -> Result<Node, E> {
+                Ok(Node::Null)
+            }
+            fn visit_some<D: de::Deserializer<'de>>(self, d: D) -> Result<Node, D::Error> {
+                Node::deserialize(d)
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut s: A) -> Result<Node, A::Error> {
+                let mut out = Vec::new();
+                while let Some(v) = s.next_element()? {
+                    out.push(v);
                 }
-                Ok(Value::Map(out))
+                Ok(Node::Seq(out))
             }
-            fn visit_seq<A: SeqAccess<'de>>(self, _s: A) -> Result<Value, A::Error> {
-                Err(de::Error::invalid_type(de::Unexpected::Seq, &self))
+            fn visit_map<A: MapAccess<'de>>(self, mut m: A) -> Result<Node, A::Error> {
+                let mut out = Vec::new();
+                while let Some((k, v)) = m.next_entry::<String, Spanned<Node>>()? {
+                    out.push((k, v));
+                }
+                Ok(Node::Map(out))
             }
         }
         d.deserialize_any(V)
     }
 }
 
+/// User text echoed in a message, cut to its first 60 characters (a pasted value may be
+/// megabytes long).
+pub fn shown(s: &str) -> std::borrow::Cow<'_, str> {
+    const MAX: usize = 60;
+    match s.char_indices().nth(MAX) {
+        None => s.into(),
+        Some((end, _)) => format!("{}... ({} characters)", &s[..end], s.chars().count()).into(),
+    }
+}
+
+/// Schema checks on the parsed tree; errors carry the node's line and column.
+struct Schema<'a> {
+    file: &'a Path,
+}
+
+type Entries = [(String, Spanned<Node>)];
+
+impl Schema<'_> {
+    fn error(&self, at: &Spanned<Node>, message: String) -> Error {
+        let (line, column) = (at.referenced.line(), at.referenced.column());
+        Error::Yaml {
+            file: self.file.into(),
+            message: format!("line {line} column {column}: {message}"),
+        }
+    }
+
+    /// `key: expected <what>, found <the node>`.
+    fn expected(&self, at: &Spanned<Node>, key: &str, what: &str) -> Error {
+        let found = match &at.value {
+            Node::Null => "nothing".to_string(),
+            Node::Scalar(s) => format!("`{}`", shown(s)),
+            Node::Seq(_) => "a list".into(),
+            Node::Map(_) => "a map".into(),
+        };
+        self.error(at, format!("{key}: expected {what}, found {found}"))
+    }
+
+    fn map<'n>(&self, at: &'n Spanned<Node>, key: &str, what: &str) -> Result<&'n Entries, Error> {
+        match &at.value {
+            Node::Map(m) => Ok(m),
+            _ => Err(self.expected(at, key, what)),
+        }
+    }
+
+    /// A key's value, `None` when absent or null.
+    fn string(
+        &self,
+        at: Option<&Spanned<Node>>,
+        key: &str,
+        what: &str,
+    ) -> Result<Option<String>, Error> {
+        match at.map(|n| (n, &n.value)) {
+            None | Some((_, Node::Null)) => Ok(None),
+            Some((_, Node::Scalar(s))) => Ok(Some(s.clone())),
+            Some((n, _)) => Err(self.expected(n, key, what)),
+        }
+    }
+
+    fn strings(&self, at: Option<&Spanned<Node>>, key: &str) -> Result<Option<Vec<String>>, Error> {
+        let what = "a list of paths";
+        match at.map(|n| (n, &n.value)) {
+            None | Some((_, Node::Null)) => Ok(None),
+            Some((_, Node::Seq(items))) => items
+                .iter()
+                .map(|i| match &i.value {
+                    Node::Scalar(s) => Ok(s.clone()),
+                    _ => Err(self.expected(i, &format!("{key} item"), "a path")),
+                })
+                .collect::<Result<_, _>>()
+                .map(Some),
+            Some((n, _)) => Err(self.expected(n, key, what)),
+        }
+    }
+
+    /// A scalar, or (with `maps`) a flat map of scalars.
+    fn value(&self, at: &Spanned<Node>, key: &str, maps: bool) -> Result<Value, Error> {
+        let what = if maps {
+            "a string, number, boolean or a map of them"
+        } else {
+            "a string, number or boolean"
+        };
+        match &at.value {
+            Node::Scalar(s) => Ok(Value::Scalar(s.clone())),
+            Node::Map(m) if maps => m
+                .iter()
+                .map(|(k, v)| match &v.value {
+                    Node::Scalar(s) => Ok((k.clone(), s.clone())),
+                    _ => Err(self.expected(
+                        v,
+                        &format!("{key}: `{k}`"),
+                        "a scalar (nested values are not supported)",
+                    )),
+                })
+                .collect::<Result<_, _>>()
+                .map(Value::Map),
+            _ => Err(self.expected(at, key, what)),
+        }
+    }
+
+    /// Reject keys outside `allowed`; return the value of each allowed key.
+    fn keys<'n, const K: usize>(
+        &self,
+        entries: &'n Entries,
+        context: &str,
+        allowed: [&str; K],
+    ) -> Result<[Option<&'n Spanned<Node>>; K], Error> {
+        let mut out = [None; K];
+        for (k, v) in entries {
+            match allowed.iter().position(|a| a == k) {
+                Some(i) => out[i] = Some(v),
+                None => {
+                    let list: Vec<String> = allowed.iter().map(|a| format!("`{a}`")).collect();
+                    return Err(self.error(
+                        v,
+                        format!(
+                            "{context}unknown key `{}` (expected {})",
+                            shown(k),
+                            list.join(", ")
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    fn pipeline(&self, root: &Spanned<Node>) -> Result<RawPipeline, Error> {
+        let top = "a map with `stages` and optionally `params`";
+        let entries = self.map(root, "the file", top)?;
+        let [params, stages] = self.keys(entries, "", ["params", "stages"])?;
+        let mut out = RawPipeline { params: Vec::new(), stages: Vec::new() };
+        if let Some(params) = params.filter(|p| !matches!(p.value, Node::Null)) {
+            for (name, v) in self.map(params, "`params`", "a map of parameter names to values")? {
+                out.params.push((
+                    name.clone(),
+                    self.value(v, &format!("parameter `{}`", shown(name)), false)?,
+                ));
+            }
+        }
+        let Some(stages) = stages else {
+            return Err(self.error(root, format!("missing `stages`: expected {top}")));
+        };
+        for (name, st) in self.map(stages, "`stages`", "a map of stage names to stages")? {
+            let ctx = format!("stage `{}`: ", shown(name));
+            let what = "a map with `cmd` (or `foreach` and `do`)";
+            let entries = self.map(st, &format!("stage `{}`", shown(name)), what)?;
+            let [cmd, deps, outs, foreach, body] =
+                self.keys(entries, &ctx, ["cmd", "deps", "outs", "foreach", "do"])?;
+            let key = |k: &str| format!("{ctx}`{k}`");
+            let foreach = match foreach.filter(|f| !matches!(f.value, Node::Null)) {
+                None => None,
+                Some(f) => match &f.value {
+                    Node::Seq(items) => Some(
+                        items
+                            .iter()
+                            .enumerate()
+                            .map(|(i, item)| {
+                                self.value(item, &format!("{ctx}`foreach` item {i}"), true)
+                            })
+                            .collect::<Result<Vec<_>, _>>()?,
+                    ),
+                    _ => return Err(self.expected(f, &key("foreach"), "a list of items")),
+                },
+            };
+            let body = match body.filter(|b| !matches!(b.value, Node::Null)) {
+                None => None,
+                Some(b) => {
+                    let entries = self.map(b, &key("do"), "a map with `cmd`, `deps` and `outs`")?;
+                    let [cmd, deps, outs] =
+                        self.keys(entries, &format!("{ctx}`do`: "), ["cmd", "deps", "outs"])?;
+                    let cmd = self.string(cmd, &key("do.cmd"), "a string (the command line)")?;
+                    Some(RawBody {
+                        cmd: cmd
+                            .ok_or_else(|| self.error(b, format!("{ctx}`do` needs a `cmd`")))?,
+                        deps: self.strings(deps, &key("do.deps"))?.unwrap_or_default(),
+                        outs: self.strings(outs, &key("do.outs"))?.unwrap_or_default(),
+                    })
+                }
+            };
+            out.stages.push((
+                name.clone(),
+                RawStage {
+                    cmd: self.string(cmd, &key("cmd"), "a string (the command line)")?,
+                    deps: self.strings(deps, &key("deps"))?,
+                    outs: self.strings(outs, &key("outs"))?,
+                    foreach,
+                    body,
+                },
+            ));
+        }
+        Ok(out)
+    }
+}
+
 /// The file as written.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[derive(Debug)]
 struct RawPipeline {
-    #[serde(default)]
-    params: Ordered<Value>,
-    stages: Ordered<RawStage>,
+    params: Vec<(String, Value)>,
+    stages: Vec<(String, RawStage)>,
 }
 
 /// A stage as written: either `cmd`/`deps`/`outs`, or `foreach` + `do`.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[derive(Debug)]
 struct RawStage {
     cmd: Option<String>,
-    #[serde(default)]
     deps: Option<Vec<String>>,
-    #[serde(default)]
     outs: Option<Vec<String>>,
     foreach: Option<Vec<Value>>,
-    #[serde(rename = "do")]
     body: Option<RawBody>,
 }
 
 /// The body of a `foreach` stage.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[derive(Debug)]
 struct RawBody {
     cmd: String,
-    #[serde(default)]
     deps: Vec<String>,
-    #[serde(default)]
     outs: Vec<String>,
 }
 
@@ -174,30 +349,47 @@ impl Pipeline {
 
     /// Parse `text` as the content of `file` (which gives the base directory).
     pub fn parse(file: &Path, text: &str, sets: &[String]) -> Result<Pipeline, Error> {
-        let raw: RawPipeline =
-            serde_saphyr::from_str_with_options(text, yaml_options()).map_err(|e| Error::Yaml {
-                file: file.into(),
-                message: e.without_snippet().to_string(),
+        let empty = |message: &str| Error::Yaml {
+            file: file.into(),
+            message: format!("{message}: expected a map with `stages` and optionally `params`"),
+        };
+        if text.lines().all(|l| {
+            let l = l.trim();
+            l.is_empty() || l.starts_with('#') || l == "---" || l == "..."
+        }) {
+            return Err(empty("the file is empty"));
+        }
+        let root: Spanned<Node> = serde_saphyr::from_str_with_options(text, yaml_options())
+            .map_err(|e| {
+                // the parser echoes the offending scalar, which may be megabytes long
+                let text = e.without_snippet().to_string();
+                let words: Vec<_> = text.split(' ').map(shown).collect();
+                Error::Yaml { file: file.into(), message: words.join(" ") }
             })?;
+        if matches!(root.value, Node::Null) {
+            return Err(empty("the file holds no value"));
+        }
+        let raw = Schema { file }.pipeline(&root)?;
         let invalid = |message: String| Error::Invalid { file: file.into(), message };
         let mut params = BTreeMap::new();
-        for (name, v) in raw.params.0 {
-            match v {
-                Value::Scalar(s) => params.insert(name, s),
-                Value::Map(_) => {
-                    return Err(invalid(format!("parameter `{name}` must be a scalar, not a map")));
-                }
-            };
+        for (name, v) in raw.params {
+            if let Value::Scalar(s) = v {
+                params.insert(name, s);
+            }
         }
         for set in sets {
             let (name, value) = parse_set(set).ok_or_else(|| Error::BadArgument {
                 file: file.into(),
-                message: format!("--set `{set}`: expected NAME=VALUE"),
+                message: format!("--set `{}`: expected NAME=VALUE", shown(set)),
             })?;
             if !params.contains_key(&name) {
                 return Err(Error::BadArgument {
                     file: file.into(),
-                    message: format!("--set `{set}`: no parameter `{name}` in the pipeline"),
+                    message: format!(
+                        "--set `{}`: no parameter `{}` in the pipeline",
+                        shown(set),
+                        shown(&name)
+                    ),
                 });
             }
             params.insert(name, value);
@@ -207,10 +399,11 @@ impl Pipeline {
             _ => PathBuf::from("."),
         };
         let mut stages: Vec<Stage> = Vec::new();
-        for (name, rs) in raw.stages.0 {
+        for (name, rs) in raw.stages {
             if name.is_empty() || name.contains(['@', '/', ' ']) {
                 return Err(invalid(format!(
-                    "stage name `{name}` must be non-empty without `@`, `/` or spaces"
+                    "stage name `{}` must be non-empty without `@`, `/` or spaces",
+                    shown(&name)
                 )));
             }
             match (rs.foreach, rs.body) {
@@ -251,7 +444,7 @@ impl Pipeline {
         let mut seen = std::collections::HashSet::new();
         for s in &stages {
             if !seen.insert(s.name.as_str()) {
-                return Err(invalid(format!("two stages are named `{}`", s.name)));
+                return Err(invalid(format!("two stages are named `{}`", shown(&s.name))));
             }
         }
         Ok(Pipeline { file: file.into(), base, stages })
@@ -287,8 +480,8 @@ fn parse_set(set: &str) -> Option<(String, String)> {
     if name.is_empty() {
         return None;
     }
-    let canonical = match serde_saphyr::from_str_with_options::<Value>(value, yaml_options()) {
-        Ok(Value::Scalar(s)) if !value.trim().is_empty() => s,
+    let canonical = match serde_saphyr::from_str_with_options::<Node>(value, yaml_options()) {
+        Ok(Node::Scalar(s)) if !value.trim().is_empty() => s,
         _ => value.to_string(),
     };
     Some((name.to_string(), canonical))
@@ -308,7 +501,11 @@ impl Interp<'_> {
         let cmd = self.interpolate(cmd, &mut used)?;
         let mut argv = shlex::split(&cmd).ok_or_else(|| Error::Invalid {
             file: self.file.into(),
-            message: format!("stage `{}`: unbalanced quotes in cmd `{cmd}`", self.stage),
+            message: format!(
+                "stage `{}`: unbalanced quotes in cmd `{}`",
+                shown(self.stage),
+                shown(&cmd)
+            ),
         })?;
         if argv.first().is_some_and(|a| a == "usplat4d") {
             argv.remove(0);
@@ -351,8 +548,8 @@ impl Interp<'_> {
     fn lookup(&self, name: &str, used: &mut BTreeMap<String, String>) -> Result<String, Error> {
         let unknown = || Error::UnknownParam {
             file: self.file.into(),
-            stage: self.stage.to_string(),
-            name: name.to_string(),
+            stage: shown(self.stage).into_owned(),
+            name: shown(name).into_owned(),
         };
         if let Some(item) = self.item {
             match (name.split_once('.'), item) {
@@ -459,6 +656,60 @@ mod tests {
         assert_eq!(e.to_string(), "dir/p.yaml: two stages are named `a@1`");
         let e = parse("stages:\n  a: {cmd: x: y}\n").unwrap_err();
         assert!(e.to_string().contains("line 2"), "{e}");
+    }
+
+    /// Type errors name the key, what was expected and what was found, with the location.
+    #[test]
+    fn type_errors_name_the_key_and_what_was_expected() {
+        let cases = [
+            (
+                "params:\n  seed: [1, 2]\nstages:\n  a: {cmd: x}\n",
+                "dir/p.yaml: line 2 column 9: parameter `seed`: expected a string, number or boolean, found a list",
+            ),
+            (
+                "stages:\n  a:\n    cmd: [x, y]\n",
+                "dir/p.yaml: line 3 column 10: stage `a`: `cmd`: expected a string (the command line), found a list",
+            ),
+            (
+                "stages:\n  - a\n",
+                "dir/p.yaml: line 2 column 3: `stages`: expected a map of stage names to stages, found a list",
+            ),
+            (
+                "stages:\n  a:\n    cmd: x\n    deps: y\n",
+                "dir/p.yaml: line 4 column 11: stage `a`: `deps`: expected a list of paths, found `y`",
+            ),
+            (
+                "stages:\n  a:\n    cmd: x\n    dep: [y]\n",
+                "dir/p.yaml: line 4 column 10: stage `a`: unknown key `dep` (expected `cmd`, `deps`, `outs`, `foreach`, `do`)",
+            ),
+            (
+                "",
+                "dir/p.yaml: the file is empty: expected a map with `stages` and optionally `params`",
+            ),
+            (
+                "# nothing yet\n\n",
+                "dir/p.yaml: the file is empty: expected a map with `stages` and optionally `params`",
+            ),
+        ];
+        for (text, want) in cases {
+            assert_eq!(parse(text).unwrap_err().to_string(), want, "{text:?}");
+        }
+    }
+
+    /// A huge value is cut when echoed: the message stays short and says how long it was.
+    #[test]
+    fn echoed_values_are_truncated() {
+        let huge = "7".repeat(2_000_000);
+        for text in [
+            format!("stages: {huge}\n"),
+            format!("stages:\n  a: {{cmd: x, deps: {huge}}}\n"),
+            format!("params: {{n: '{huge}'}}\nstages:\n  a: {{cmd: \"x ${{n}} '\"}}\n"),
+            format!("stages:\n  a: {{foreach: ['{huge}', '{huge}'], do: {{cmd: x}}}}\n"),
+        ] {
+            let msg = parse(&text).unwrap_err().to_string();
+            assert!(msg.len() < 300, "{} characters: {}", msg.len(), &msg[..300]);
+            assert!(msg.contains("7777777777... (200000"), "{msg}");
+        }
     }
 
     #[test]

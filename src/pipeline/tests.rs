@@ -409,3 +409,29 @@ fn a_rebuilt_tool_reruns_its_stages() {
     let (_, runs) = f.run(&[]);
     assert!(runs > 0, "the stage ran again");
 }
+
+/// A run killed while restoring from the run cache leaves its staging directory
+/// (`.restore-*` beside the output, holding a partial copy); the next run removes it, whether
+/// it restores, runs or skips the stage, and leaves the user's own hidden files alone.
+#[test]
+fn the_next_run_sweeps_the_staging_of_a_killed_restore() {
+    let mut f = Fixture::new(PIPE);
+    f.run(&[]);
+    let base = f.dir.path().to_path_buf();
+    let killed = |name: &str| {
+        let staged = base.join(name).join("out");
+        std::fs::create_dir_all(&staged).unwrap();
+        std::fs::write(staged.join("0.txt"), "hel").unwrap();
+    };
+    killed(".restore-Ab12Cd");
+    killed(".restore-Zz99yy");
+    std::fs::write(base.join(".restore-notes"), "mine").unwrap();
+    let (lines, n) = f.run(&[]);
+    assert_eq!((lines.last().unwrap().as_str(), n), ("all 6 stages up to date", 0));
+    let left: Vec<String> = std::fs::read_dir(&base)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(".restore-"))
+        .collect();
+    assert_eq!(left, [".restore-notes"], "staging directories of a killed restore remain");
+}

@@ -10,6 +10,8 @@
 //! With `--depth`, the expected z-depth normalised by alpha (Σ T·α·z / α) is written as
 //! float32 `.npy` at the camera's `depth_path` (or `depth/<camera>/<frame:05>.npy`), 0 where
 //! α < 0.5 (invalid, the DESIGN convention). Lens distortion is ignored (pinhole render).
+//! Everything is written to a staging directory beside OUT and moved into OUT only once every
+//! camera rendered, so a bad frame leaves no partial output.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -164,22 +166,55 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
     }
     let bar = ctx.progress(cams.len() as u64, "render");
     let renderer = CpuRenderer;
+    let staging = staging_dir(&p.out)?;
+    let staged = staging.path();
     for (&frame, cs) in &by_frame {
         let state = model.frame(frame as usize)?;
         for cam in cs {
             let out = render_frame(&renderer, &model, &state, cam, &settings)
                 .with_context(|| format!("rendering camera '{}' frame {frame}", cam.camera))?;
-            write_png(&p.out.join(&cam.image_path), &straight_rgba(&out, background))?;
+            write_png(&staged.join(&cam.image_path), &straight_rgba(&out, background))?;
             if p.depth {
-                let path = p.out.join(depth_rel_path(cam));
+                let path = staged.join(depth_rel_path(cam));
                 write_npy_f32(&path, &[out.height, out.width], &normalized_depth(&out))?;
             }
             bar.inc(1);
         }
     }
     bar.finish_and_clear();
-    write_manifest(&p.out, p, model.sh_frame, cams.len())?;
+    write_manifest(staged, p, model.sh_frame, cams.len())?;
+    publish(staged, &p.out)?;
     ctx.info(format!("rendered {} images into {}", cams.len(), p.out.display()));
+    Ok(())
+}
+
+/// A staging directory beside `out` (same file system, so its files can be renamed in).
+fn staging_dir(out: &Path) -> anyhow::Result<tempfile::TempDir> {
+    let abs = std::path::absolute(out).with_context(|| out.display().to_string())?;
+    let parent = abs.parent().unwrap_or(&abs);
+    std::fs::create_dir_all(parent).with_context(|| parent.display().to_string())?;
+    tempfile::Builder::new()
+        .prefix(".render-")
+        .tempdir_in(parent)
+        .with_context(|| format!("{}: cannot create a staging directory", parent.display()))
+}
+
+/// Move the staged files into `out`: the whole directory when `out` does not exist yet,
+/// otherwise file by file, replacing files of the same name and keeping the others.
+fn publish(staged: &Path, out: &Path) -> anyhow::Result<()> {
+    if !out.exists() {
+        return std::fs::rename(staged, out).with_context(|| out.display().to_string());
+    }
+    for e in std::fs::read_dir(staged).with_context(|| staged.display().to_string())? {
+        let e = e.with_context(|| staged.display().to_string())?;
+        let to = out.join(e.file_name());
+        if e.file_type()?.is_dir() {
+            std::fs::create_dir_all(&to).with_context(|| to.display().to_string())?;
+            publish(&e.path(), &to)?;
+        } else {
+            std::fs::rename(e.path(), &to).with_context(|| to.display().to_string())?;
+        }
+    }
     Ok(())
 }
 
@@ -288,5 +323,64 @@ mod tests {
             err.contains("cameras.parquet") && err.contains("frame 2") && err.contains("2 frames"),
             "{err}"
         );
+    }
+
+    fn files_under(dir: &Path) -> Vec<String> {
+        let mut out = Vec::new();
+        let mut stack = vec![dir.to_path_buf()];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d).into_iter().flatten() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else {
+                    out.push(p.strip_prefix(dir).unwrap().to_string_lossy().into_owned());
+                }
+            }
+        }
+        out.sort();
+        out
+    }
+
+    /// A bad frame after good ones leaves no partial output: neither images of the good
+    /// frames nor a staging directory; an existing output directory keeps its files.
+    #[test]
+    fn a_bad_later_frame_leaves_no_partial_output() {
+        let dir = tempfile::tempdir().unwrap();
+        let (scene, model) = write_demo_scene(dir.path(), 6).unwrap();
+        let m = Model::load(&model).unwrap();
+        let frames: Vec<_> = (0..6)
+            .map(|t| {
+                let mut f = m.frame(t).unwrap();
+                if t == 4 {
+                    f.position[7][1] = f32::NAN;
+                }
+                Ok(f)
+            })
+            .collect();
+        Model::save(&model, &m.gaussians, frames, &crate::tables::Provenance::default()).unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::write(out.join("notes.txt"), "mine").unwrap();
+        let p = RenderParams {
+            model,
+            scene,
+            out: out.clone(),
+            split: SplitSel::All,
+            background: "white".into(),
+            alpha_max: 0.99,
+            depth: true,
+        };
+        let err = format!("{:#}", run(&p, &Context::quiet()).unwrap_err());
+        assert!(err.contains("trajectories.parquet") && err.contains("row 2311"), "{err}");
+        assert_eq!(files_under(&out), ["notes.txt"]);
+        let siblings: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert!(siblings.iter().all(|n| !n.starts_with('.')), "staging left: {siblings:?}");
+        let fresh = RenderParams { out: dir.path().join("fresh"), ..p };
+        assert!(run(&fresh, &Context::quiet()).is_err());
+        assert!(!fresh.out.exists(), "a failed render creates no output directory");
     }
 }

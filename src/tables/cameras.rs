@@ -203,9 +203,10 @@ pub fn read(path: &Path) -> Result<Vec<Camera>> {
     let mask = c.opt_strings("mask_path")?;
     let angle = c.opt_values::<Float32Type>("angle_offset_deg")?;
     let dist_arr = c.get::<FixedSizeListArray>("distortion")?;
-    for (name, v) in [("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy), ("w2c", w2c)] {
+    for (name, v) in [("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)] {
         validate::finite(path, name, 0, v)?;
     }
+    validate::finite_items(path, "w2c", 0, w2c, 16)?;
     let value_err = |column: &str, row: usize, msg: String| Error::Value {
         path: path.to_path_buf(),
         column: column.into(),
@@ -246,7 +247,7 @@ pub fn read(path: &Path) -> Result<Vec<Camera>> {
                 .downcast_ref::<Float64Array>()
                 .map(|a| a.values().to_vec())
                 .unwrap_or_default();
-            validate::finite(path, "distortion", i as u64, &v)?;
+            validate::finite_items(path, "distortion", i as u64, &v, 5)?;
             let mut d = [0.0; 5];
             d.copy_from_slice(&v[..5]);
             Some(d)

@@ -158,7 +158,7 @@ pub fn read(path: &Path) -> Result<Gaussians> {
         })?;
     let start = offsets[0] as usize;
     let sh_rest = values.values()[start..start + k3 * sh.len()].to_vec();
-    validate::finite(path, "sh_rest", 0, &sh_rest)?;
+    validate::finite_items(path, "sh_rest", 0, &sh_rest, k3.max(1))?;
     let tri = |a: &[f32], b: &[f32], c: &[f32]| (0..a.len()).map(|i| [a[i], b[i], c[i]]).collect();
     Ok(Gaussians {
         id: id.to_vec(),

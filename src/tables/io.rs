@@ -3,6 +3,12 @@
 //!
 //! Writers go to a temporary file in the destination directory, are closed explicitly and
 //! then renamed into place, so a killed process never leaves a file a later run trusts.
+//!
+//! Readers never hand parquet-rs a file it could panic on: [`load_metadata`] checks the magic
+//! bytes and that every column chunk lies inside the file before anything is decoded, and
+//! [`read_row_groups`] feeds the decoder through a page reader that rejects dictionary-encoded
+//! data pages of a chunk without a dictionary page and pages in encodings other than PLAIN,
+//! RLE and dictionary (parquet-rs 60 panics on corrupt ones of each).
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -11,12 +17,15 @@ use std::sync::Arc;
 use arrow::array::{Array, RecordBatch};
 use arrow::datatypes::{DataType, Field, SchemaRef};
 use bytes::Bytes;
-use parquet::arrow::ArrowWriter;
-use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ParquetRecordBatchReaderBuilder};
-use parquet::basic::{Compression, ZstdLevel};
-use parquet::file::metadata::KeyValue;
+use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ParquetRecordBatchReader, RowGroups};
+use parquet::arrow::{ArrowWriter, ProjectionMask, parquet_to_arrow_field_levels};
+use parquet::basic::{Compression, Encoding, ZstdLevel};
+use parquet::column::page::{Page, PageIterator, PageMetadata, PageReader};
+use parquet::errors::ParquetError;
+use parquet::file::metadata::{KeyValue, ParquetMetaData, RowGroupMetaData};
 use parquet::file::properties::WriterProperties;
 use parquet::file::reader::ChunkReader;
+use parquet::file::serialized_reader::SerializedPageReader;
 
 use super::{Error, Result};
 
@@ -57,13 +66,22 @@ pub struct Provenance {
 }
 
 impl Provenance {
-    /// Provenance of `stage` with parameters serialised from `params`.
+    /// Provenance of `stage` with parameters serialised from `params`, less the output path
+    /// (every key `out`, at any depth): a table's bytes do not depend on where it was written.
     pub fn new(stage: &str, params: &impl serde::Serialize) -> Self {
-        Provenance {
-            stage: stage.to_string(),
-            params: serde_json::to_value(params).unwrap_or(serde_json::Value::Null),
-            metadata: Vec::new(),
+        fn strip_out(v: &mut serde_json::Value) {
+            match v {
+                serde_json::Value::Object(m) => {
+                    m.remove("out");
+                    m.values_mut().for_each(strip_out);
+                }
+                serde_json::Value::Array(a) => a.iter_mut().for_each(strip_out),
+                _ => {}
+            }
         }
+        let mut params = serde_json::to_value(params).unwrap_or(serde_json::Value::Null);
+        strip_out(&mut params);
+        Provenance { stage: stage.to_string(), params, metadata: Vec::new() }
     }
 
     /// The same provenance with one more key-value metadata entry.
@@ -248,8 +266,7 @@ impl TableReader<File> {
 impl<R: Source> TableReader<R> {
     /// Read table `T` from `source`; `path` names it in errors.
     pub fn new<T: Table>(path: &Path, source: R) -> Result<Self> {
-        let meta = ArrowReaderMetadata::load(&source, Default::default())
-            .map_err(|source| Error::Parquet { path: path.to_path_buf(), cause: source })?;
+        let meta = load_metadata(path, &source)?;
         let problems = schema_problems(&T::schema(), meta.schema());
         let kv_table = meta
             .metadata()
@@ -309,17 +326,12 @@ impl<R: Source> TableReader<R> {
     }
 
     fn read(&self, groups: Option<Vec<usize>>) -> Result<RecordBatch> {
-        let pq = |source| Error::Parquet { path: self.path.clone(), cause: source };
         let src = self
             .source
             .dup()
             .map_err(|source| Error::Io { path: self.path.clone(), cause: source })?;
-        let mut builder =
-            ParquetRecordBatchReaderBuilder::new_with_metadata(src, self.meta.clone());
-        if let Some(g) = groups {
-            builder = builder.with_row_groups(g);
-        }
-        let reader = builder.with_batch_size(1 << 20).build().map_err(pq)?;
+        let groups = groups.unwrap_or_else(|| (0..self.num_row_groups()).collect());
+        let reader = read_row_groups(&self.path, src, &self.meta, groups, 1 << 20)?;
         let schema = arrow::array::RecordBatchReader::schema(&reader);
         let mut batches = Vec::new();
         for b in reader {
@@ -345,6 +357,175 @@ impl<R: Source> TableReader<R> {
             });
         }
         self.read(Some(vec![i]))
+    }
+}
+
+/// Load the footer of the Parquet file `source` (`path` names it in errors) and check that
+/// every column chunk lies inside the file, before anything is decoded.
+pub fn load_metadata<R: ChunkReader>(path: &Path, source: &R) -> Result<ArrowReaderMetadata> {
+    let pq = |cause| Error::Parquet { path: path.to_path_buf(), cause };
+    let corrupt = |msg: String| Error::Corrupt { path: path.to_path_buf(), msg };
+    let len = source.len();
+    if source.get_bytes(0, 4.min(len as usize)).map_err(pq)?.as_ref() != b"PAR1" {
+        return Err(corrupt("not a Parquet file (it does not start with the bytes PAR1)".into()));
+    }
+    let meta = ArrowReaderMetadata::load(source, Default::default()).map_err(pq)?;
+    // The footer (metadata, its 4-byte length, the magic) ends the file; the pages precede it.
+    let tail = source.get_bytes(len.saturating_sub(8), 4).map_err(pq)?;
+    let footer = u32::from_le_bytes([tail[0], tail[1], tail[2], tail[3]]) as u64;
+    let data_end = len.saturating_sub(8 + footer) as i64;
+    for (g, rg) in meta.metadata().row_groups().iter().enumerate() {
+        if rg.num_rows() < 0 {
+            return Err(corrupt(format!("row group {g} has {} rows", rg.num_rows())));
+        }
+        for c in rg.columns() {
+            let data = c.data_page_offset();
+            let start = c.dictionary_page_offset().unwrap_or(data);
+            let size = c.compressed_size();
+            let inside = start >= 4
+                && size > 0
+                && (start..start.saturating_add(size)).contains(&data)
+                && start.saturating_add(size) <= data_end;
+            if !inside {
+                return Err(corrupt(format!(
+                    "corrupt Parquet footer: row group {g}, column '{}': pages at bytes {start}..{} (data page at {data}) lie outside the data of the file (bytes 4..{data_end})",
+                    c.column_path(),
+                    start.saturating_add(size),
+                )));
+            }
+        }
+    }
+    Ok(meta)
+}
+
+/// A decoder over row groups `groups` of `source`, whose page readers check the pages.
+pub fn read_row_groups<R: ChunkReader + 'static>(
+    path: &Path,
+    source: R,
+    meta: &ArrowReaderMetadata,
+    groups: Vec<usize>,
+    batch_size: usize,
+) -> Result<ParquetRecordBatchReader> {
+    let pq = |cause| Error::Parquet { path: path.to_path_buf(), cause };
+    let levels = parquet_to_arrow_field_levels(
+        meta.parquet_schema(),
+        ProjectionMask::all(),
+        Some(meta.schema().fields()),
+    )
+    .map_err(pq)?;
+    let row_groups = CheckedRowGroups { source: Arc::new(source), meta: meta.metadata(), groups };
+    ParquetRecordBatchReader::try_new_with_row_groups(&levels, &row_groups, batch_size, None)
+        .map_err(pq)
+}
+
+/// Row groups of a file whose column chunks are read through [`CheckedPages`].
+struct CheckedRowGroups<'a, R> {
+    source: Arc<R>,
+    meta: &'a Arc<ParquetMetaData>,
+    groups: Vec<usize>,
+}
+
+impl<R: ChunkReader + 'static> RowGroups for CheckedRowGroups<'_, R> {
+    fn num_rows(&self) -> usize {
+        self.groups.iter().map(|&g| self.meta.row_group(g).num_rows().max(0) as usize).sum()
+    }
+
+    fn column_chunks(&self, i: usize) -> parquet::errors::Result<Box<dyn PageIterator>> {
+        let mut chunks: Vec<parquet::errors::Result<Box<dyn PageReader>>> = Vec::new();
+        for &g in &self.groups {
+            let rg = self.meta.row_group(g);
+            let pages = SerializedPageReader::new(
+                self.source.clone(),
+                rg.column(i),
+                rg.num_rows().max(0) as usize,
+                None,
+            )?;
+            chunks.push(Ok(Box::new(CheckedPages { inner: pages, dictionary: false })));
+        }
+        Ok(Box::new(Chunks(chunks.into_iter())))
+    }
+
+    fn row_groups(&self) -> Box<dyn Iterator<Item = &RowGroupMetaData> + '_> {
+        Box::new(self.groups.iter().map(|&g| self.meta.row_group(g)))
+    }
+
+    fn metadata(&self) -> &ParquetMetaData {
+        self.meta
+    }
+}
+
+/// The page readers of one column, one per row group.
+struct Chunks(std::vec::IntoIter<parquet::errors::Result<Box<dyn PageReader>>>);
+
+impl Iterator for Chunks {
+    type Item = parquet::errors::Result<Box<dyn PageReader>>;
+    fn next(&mut self) -> Option<Self::Item> {
+        self.0.next()
+    }
+}
+
+impl PageIterator for Chunks {}
+
+/// The pages of one column chunk, rejecting a dictionary-encoded data page that no
+/// dictionary page precedes.
+struct CheckedPages<P> {
+    inner: P,
+    dictionary: bool,
+}
+
+impl<P: PageReader> CheckedPages<P> {
+    fn check(&mut self, page: Option<Page>) -> parquet::errors::Result<Option<Page>> {
+        match &page {
+            Some(Page::DictionaryPage { .. }) => self.dictionary = true,
+            Some(Page::DataPage { encoding, .. } | Page::DataPageV2 { encoding, .. })
+                if matches!(encoding, Encoding::PLAIN_DICTIONARY | Encoding::RLE_DICTIONARY)
+                    && !self.dictionary =>
+            {
+                return Err(ParquetError::General(
+                    "corrupt column chunk: a dictionary-encoded data page without a dictionary page"
+                        .into(),
+                ));
+            }
+            Some(Page::DataPage { encoding, .. } | Page::DataPageV2 { encoding, .. })
+                if !matches!(
+                    encoding,
+                    Encoding::PLAIN
+                        | Encoding::PLAIN_DICTIONARY
+                        | Encoding::RLE_DICTIONARY
+                        | Encoding::RLE
+                ) =>
+            {
+                // parquet-rs 60 panics on corrupt BYTE_STREAM_SPLIT and DELTA pages; no
+                // writer of usplat4d tables (ours, pyarrow's defaults) uses them
+                return Err(ParquetError::General(format!(
+                    "unsupported page encoding {encoding} (tables use PLAIN, RLE and dictionary pages)"
+                )));
+            }
+            _ => {}
+        }
+        Ok(page)
+    }
+}
+
+impl<P: PageReader> Iterator for CheckedPages<P> {
+    type Item = parquet::errors::Result<Page>;
+    fn next(&mut self) -> Option<Self::Item> {
+        self.get_next_page().transpose()
+    }
+}
+
+impl<P: PageReader> PageReader for CheckedPages<P> {
+    fn get_next_page(&mut self) -> parquet::errors::Result<Option<Page>> {
+        let page = self.inner.get_next_page()?;
+        self.check(page)
+    }
+
+    fn peek_next_page(&mut self) -> parquet::errors::Result<Option<PageMetadata>> {
+        self.inner.peek_next_page()
+    }
+
+    fn skip_next_page(&mut self) -> parquet::errors::Result<()> {
+        self.inner.skip_next_page()
     }
 }
 

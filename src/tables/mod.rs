@@ -58,6 +58,14 @@ pub enum Error {
         /// The underlying error.
         cause: arrow::error::ArrowError,
     },
+    /// Not a Parquet file, or one whose footer describes pages outside the file.
+    #[error("{}: {msg}", path.display())]
+    Corrupt {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        msg: String,
+    },
     /// The file's schema differs from the table's; lists every mismatch.
     #[error("{}: not a valid '{table}' table: {problems}", path.display())]
     Schema {

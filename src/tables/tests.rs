@@ -211,3 +211,216 @@ fn reading_from_bytes_matches_file() {
     let from_file = TableReader::open::<trajectories::TrajectoriesTable>(&p).unwrap();
     assert_eq!(from_bytes.read_group(1).unwrap(), from_file.read_group(1).unwrap());
 }
+
+/// A bad value in a fixed-size list column is reported at its row, not at its flattened index.
+#[test]
+fn non_finite_list_items_name_their_row() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cameras: Vec<Camera> = (0..10).flat_map(|_| sample_cameras()).collect();
+    for (i, c) in cameras.iter_mut().enumerate() {
+        c.frame = i as u32;
+    }
+    cameras[8].w2c[3] = f64::NAN;
+    cameras[9].distortion = Some([0.1, 0.0, 0.0, f64::INFINITY, 0.0]);
+    let scene = Scene { dir: dir.path().into(), cameras: cameras.clone() };
+    scene.save(&Provenance::default()).unwrap();
+    let p = Scene::cameras_path(dir.path());
+    assert_eq!(
+        Scene::load(dir.path()).unwrap_err().to_string(),
+        format!("{}: column 'w2c', row 8: non-finite value NaN (item 3 of 16)", p.display())
+    );
+    cameras[8].w2c[3] = 0.0;
+    let scene = Scene { dir: dir.path().into(), cameras };
+    scene.save(&Provenance::default()).unwrap();
+    assert_eq!(
+        Scene::load(dir.path()).unwrap_err().to_string(),
+        format!("{}: column 'distortion', row 9: non-finite value inf (item 3 of 5)", p.display())
+    );
+    let (mut g, _) = sample_model();
+    let k3 = g.sh_rest_len();
+    g.sh_rest[2 * k3 + 1] = f32::NAN;
+    let gp = dir.path().join("gaussians.parquet");
+    tables::gaussians::write(&gp, &g, &Provenance::default()).unwrap();
+    assert_eq!(
+        tables::gaussians::read(&gp).unwrap_err().to_string(),
+        format!("{}: column 'sh_rest', row 2: non-finite value NaN (item 1 of {k3})", gp.display())
+    );
+}
+
+/// Reads `path` with every table reader (whole tables and every frame of per-frame
+/// tables), returning each reader's error message; Ok results are reported as `None`.
+pub(crate) fn read_with_every_reader(path: &Path) -> Vec<(&'static str, Option<String>)> {
+    fn frames<R>(
+        open: Result<R>,
+        num: impl Fn(&R) -> usize,
+        frame: impl Fn(&R, usize) -> Result<()>,
+    ) -> Option<String> {
+        let r = match open {
+            Ok(r) => r,
+            Err(e) => return Some(e.to_string()),
+        };
+        (0..num(&r)).find_map(|t| frame(&r, t).err().map(|e| e.to_string()))
+    }
+    vec![
+        ("cameras", cameras::read(path).err().map(|e| e.to_string())),
+        ("gaussians", gaussians::read(path).err().map(|e| e.to_string())),
+        ("edges", edges::read(path).err().map(|e| e.to_string())),
+        ("key_nodes", key_nodes::read(path).err().map(|e| e.to_string())),
+        ("metrics", metrics::read(path).err().map(|e| e.to_string())),
+        ("segments", segments::read(path).err().map(|e| e.to_string())),
+        (
+            "uncertainty",
+            frames(
+                uncertainty::UncertaintyReader::open(path),
+                |r| r.num_frames(),
+                |r, t| r.frame(t).map(drop),
+            ),
+        ),
+        (
+            "trajectories",
+            frames(
+                trajectories::TrajectoryReader::open(path, &sample_model().0.id),
+                |r| r.num_frames(),
+                |r, t| r.frame(t).map(drop),
+            ),
+        ),
+        (
+            "tracks_2d",
+            frames(
+                tracks_2d::Tracks2dReader::open(path),
+                |r| r.num_frames(),
+                |r, t| r.frame(t).map(drop),
+            ),
+        ),
+        (
+            "tracks_3d",
+            frames(
+                tracks_3d::Tracks3dReader::open(path),
+                |r| r.num_frames(),
+                |r, t| r.frame(t).map(drop),
+            ),
+        ),
+    ]
+}
+
+/// The Parquet files that crashed parquet-rs 60 (`../shared/data/bad-parquet/`, corrupted
+/// footers and dictionary pages) are errors naming the file in every reader.
+#[test]
+fn corrupted_parquet_is_an_error_in_every_reader() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let Some(dir) =
+        [root.join("../shared/data/bad-parquet"), root.join("../../shared/data/bad-parquet")]
+            .into_iter()
+            .find(|d| d.is_dir())
+    else {
+        eprintln!(
+            "SKIP corrupted_parquet_is_an_error_in_every_reader: no ../shared/data/bad-parquet"
+        );
+        return;
+    };
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
+        .collect();
+    files.sort();
+    assert_eq!(files.len(), 9);
+    for f in &files {
+        for (reader, result) in read_with_every_reader(f) {
+            let msg = result.unwrap_or_else(|| panic!("{reader} accepted {}", f.display()));
+            assert!(msg.starts_with(&format!("{}: ", f.display())), "{reader}: {msg}");
+        }
+    }
+}
+
+/// Fuzz target of the table readers: valid tables (dictionary-encoded, compressed) with
+/// bytes flipped, runs overwritten (often in the footer) or cut short, read by every reader;
+/// none may panic. `USPLAT4D_FUZZ_ITERS` mutations (default 2000, what CI runs),
+/// `USPLAT4D_FUZZ_SECONDS` stops earlier, `USPLAT4D_FUZZ_SEED` picks the sequence.
+#[test]
+fn fuzzed_tables_never_panic() {
+    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<u64>().ok());
+    let iters = env("USPLAT4D_FUZZ_ITERS").unwrap_or(2000);
+    let seconds = env("USPLAT4D_FUZZ_SECONDS");
+    let mut state = env("USPLAT4D_FUZZ_SEED").unwrap_or(1);
+    let mut next = move || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene { dir: dir.path().join("s"), cameras: sample_cameras() };
+    scene.save(&Provenance::default()).unwrap();
+    let (g, frames) = sample_model();
+    Model::save(&dir.path().join("m"), &g, frames.into_iter().map(Ok), &Provenance::default())
+        .unwrap();
+    let ids: Vec<u32> = (0..40).collect();
+    let unc = dir.path().join("uncertainty.parquet");
+    let mut w = uncertainty::UncertaintyWriter::create(&unc, &ids, &Provenance::default()).unwrap();
+    for t in 0..3u32 {
+        w.write(&uncertainty::UncertaintyFrame {
+            frame: t,
+            sum_w2: ids.iter().map(|&i| (i % 5) as f32).collect(),
+            sum_w: ids.iter().map(|&i| (i % 3) as f32).collect(),
+            n_pixels: ids.iter().map(|&i| i % 4).collect(),
+            converged: ids.iter().map(|&i| i % 2 == 0).collect(),
+            u: ids.iter().map(|&i| 1.0 + (i % 6) as f32).collect(),
+        })
+        .unwrap();
+    }
+    w.finish().unwrap();
+    let seeds: Vec<Vec<u8>> = [
+        Scene::cameras_path(&scene.dir),
+        Model::gaussians_path(&dir.path().join("m")),
+        Model::trajectories_path(&dir.path().join("m")),
+        unc,
+    ]
+    .iter()
+    .map(|p| std::fs::read(p).unwrap())
+    .collect();
+    let target = dir.path().join("fuzzed.parquet");
+    let start = std::time::Instant::now();
+    let mut crashes = Vec::new();
+    let mut done = 0;
+    while done < iters && seconds.is_none_or(|s| start.elapsed().as_secs() < s) {
+        let mut bytes = seeds[(next() % seeds.len() as u64) as usize].clone();
+        let n = bytes.len() as u64;
+        match next() % 8 {
+            0 => bytes.truncate((next() % n) as usize),
+            1..=3 => {
+                // a run in the footer (the last quarter of the file)
+                let at = n - 1 - next() % (n / 4);
+                for i in 0..=next() % 8 {
+                    if let Some(b) = bytes.get_mut((at + i) as usize) {
+                        *b = next() as u8;
+                    }
+                }
+            }
+            _ => {
+                for _ in 0..=next() % 4 {
+                    let at = (next() % n) as usize;
+                    bytes[at] ^= 1 << (next() % 8);
+                }
+            }
+        }
+        std::fs::write(&target, &bytes).unwrap();
+        let result = std::panic::catch_unwind(|| read_with_every_reader(&target));
+        if result.is_err() {
+            let keep = dir.path().join(format!("crash-{done}.parquet"));
+            std::fs::copy(&target, &keep).unwrap();
+            crashes.push(done);
+        }
+        done += 1;
+    }
+    eprintln!(
+        "fuzzed_tables_never_panic: {done} mutations in {:.0} s, {} panics",
+        start.elapsed().as_secs_f64(),
+        crashes.len()
+    );
+    if !crashes.is_empty() {
+        let kept = dir.keep();
+        panic!("panics at mutations {crashes:?}; files kept in {}", kept.display());
+    }
+}

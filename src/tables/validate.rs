@@ -27,6 +27,26 @@ pub fn finite<F: Copy + Into<f64>>(
     }
 }
 
+/// Every item of a list column stored flattened, `width` items per row (`values` is
+/// `[rows, width]`), is finite; the message names the row and the item within it.
+pub fn finite_items<F: Copy + Into<f64>>(
+    path: &Path,
+    column: &str,
+    row0: u64,
+    values: &[F],
+    width: usize,
+) -> Result<()> {
+    match values.iter().position(|v| !(*v).into().is_finite()) {
+        Some(i) => Err(Error::Value {
+            path: path.to_path_buf(),
+            column: column.to_string(),
+            row: row0 + (i / width) as u64,
+            msg: format!("non-finite value {} (item {} of {width})", values[i].into(), i % width),
+        }),
+        None => Ok(()),
+    }
+}
+
 /// Every value lies in `[lo, hi]`.
 pub fn in_range(
     path: &Path,

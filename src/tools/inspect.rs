@@ -6,7 +6,6 @@ use std::path::PathBuf;
 
 use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
 use arrow::datatypes::DataType;
-use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 
 use crate::context::Context;
 use crate::tables::Error;
@@ -108,13 +107,13 @@ pub struct Summary {
 
 /// Describe the Parquet file at `path`, reading it batch by batch.
 pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> {
-    let pq = |source| Error::Parquet { path: path.to_path_buf(), cause: source };
     let file =
         File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
-    let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq)?;
-    let meta = builder.metadata().clone();
-    let schema = builder.schema().clone();
-    let reader = builder.with_batch_size(65536).build().map_err(pq)?;
+    let arrow_meta = crate::tables::io::load_metadata(path, &file)?;
+    let meta = arrow_meta.metadata().clone();
+    let schema = arrow_meta.schema().clone();
+    let groups = (0..meta.num_row_groups()).collect();
+    let reader = crate::tables::io::read_row_groups(path, file, &arrow_meta, groups, 65536)?;
     let mut columns: Vec<ColumnStats> = schema
         .fields()
         .iter()

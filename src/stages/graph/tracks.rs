@@ -87,6 +87,15 @@ pub fn load_tracks(
             model.num_frames()
         );
     }
+    if unc.ids().len() != model.gaussians.len() {
+        anyhow::bail!(
+            "{}: {} rows per frame, expected one per Gaussian of the model {} ({})",
+            uncertainty_file.display(),
+            unc.ids().len(),
+            model.dir.display(),
+            model.gaussians.len()
+        );
+    }
     let index: std::collections::HashMap<u32, usize> =
         model.gaussians.id.iter().enumerate().map(|(i, id)| (*id, i)).collect();
     let rows: Vec<usize> = unc
@@ -196,4 +205,43 @@ pub fn synthetic_tracks_hidden(
         })
         .collect();
     (tracks, rotations, group)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An uncertainty table of another model's size is blamed itself, not the key nodes
+    /// that a later check would find disagreeing with it.
+    #[test]
+    fn an_uncertainty_table_of_another_size_names_itself() {
+        use crate::tables::uncertainty::{UncertaintyFrame, UncertaintyWriter};
+        let dir = tempfile::tempdir().unwrap();
+        let (_, model_dir) = crate::datasets::demo::write_demo_scene(dir.path(), 2).unwrap();
+        let model = Model::load(&model_dir).unwrap();
+        let ids = &model.gaussians.id[..10];
+        let path = dir.path().join("uncertainty.parquet");
+        let mut w = UncertaintyWriter::create(&path, ids, &Default::default()).unwrap();
+        for t in 0..2 {
+            w.write(&UncertaintyFrame {
+                frame: t,
+                sum_w2: vec![1.0; 10],
+                sum_w: vec![1.0; 10],
+                n_pixels: vec![1; 10],
+                converged: vec![true; 10],
+                u: vec![1.0; 10],
+            })
+            .unwrap();
+        }
+        w.finish().unwrap();
+        let err = load_tracks(&model, &path, &crate::context::Context::quiet()).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            format!(
+                "{}: 10 rows per frame, expected one per Gaussian of the model {} (576)",
+                path.display(),
+                model_dir.display()
+            )
+        );
+    }
 }
