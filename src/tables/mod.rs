@@ -18,6 +18,7 @@ pub mod metrics;
 pub mod segments;
 pub mod tracks_2d;
 pub mod tracks_3d;
+pub mod training_log;
 pub mod trajectories;
 pub mod uncertainty;
 pub mod validate;
@@ -131,5 +132,6 @@ pub fn registry() -> Vec<TableKind> {
         entry::<key_nodes::KeyNodesTable>(),
         entry::<edges::EdgesTable>(),
         entry::<segments::SegmentsTable>(),
+        entry::<training_log::TrainingLogTable>(),
     ]
 }
