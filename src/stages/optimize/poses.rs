@@ -74,10 +74,7 @@ pub struct PoseGrads {
 impl PoseGrads {
     /// All-zero gradients for `frames` frames of `n` Gaussians.
     pub fn zeros(frames: usize, n: usize) -> Self {
-        Self {
-            position: vec![[0.0; 3]; frames * n],
-            rotation: vec![[0.0; 4]; frames * n],
-        }
+        Self { position: vec![[0.0; 3]; frames * n], rotation: vec![[0.0; 4]; frames * n] }
     }
 
     /// Sets every gradient to zero, keeping the allocation.
