@@ -42,6 +42,8 @@ pub enum Command {
     Keynodes(crate::stages::keynodes::KeynodeParams),
     /// Uncertainty-aware graph edges (paper Sec. 4.2, Eqs. 7-8).
     Edges(crate::stages::edges::EdgeParams),
+    /// Uncertainty-aware optimisation: the vanilla and USplat4D recipes (paper Sec. 4.3).
+    Optimize(Box<crate::stages::optimize::OptimizeParams>),
     /// Motion segments by spectral clustering of the key graph.
     Segment(crate::stages::segment::SegmentParams),
     /// Image and tracking metrics of renders against a scene.
@@ -91,6 +93,7 @@ impl Command {
             Command::Uncertainty(_) => "uncertainty",
             Command::Keynodes(_) => "keynodes",
             Command::Edges(_) => "edges",
+            Command::Optimize(_) => "optimize",
             Command::Segment(_) => "segment",
             Command::Evaluate(_) => "evaluate",
             Command::Lpips(_) => "lpips",
@@ -115,6 +118,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Uncertainty(p) => stages::uncertainty::run(&p, ctx),
         Command::Keynodes(p) => stages::keynodes::run(&p, ctx),
         Command::Edges(p) => stages::edges::run(&p, ctx),
+        Command::Optimize(p) => stages::optimize::run(&p, ctx),
         Command::Segment(p) => stages::segment::run(&p, ctx),
         Command::Evaluate(p) => stages::evaluate::run(&p, ctx),
         Command::Lpips(c) => metrics::lpips::run_command(&c, ctx),

@@ -10,6 +10,7 @@ mod graph;
 mod graph_fox;
 mod inspect;
 mod interop;
+mod optimize;
 mod pipeline;
 mod render;
 mod synth;

@@ -212,7 +212,11 @@ fn screen_space_gradients_match_finite_differences_of_the_principal_point() {
         let step = 1e-2f32;
         let bump = |d: f32| {
             let mut c = cam;
-            if axis == 0 { c.cx += d } else { c.cy += d }
+            if axis == 0 {
+                c.cx += d
+            } else {
+                c.cy += d
+            }
             loss(&c, &s, &v)
         };
         let fd = (bump(step) - bump(-step)) / (2.0 * step as f64);

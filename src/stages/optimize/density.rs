@@ -229,7 +229,8 @@ mod tests {
             .zip(layouts)
             .map(|(k, (f, st))| (k.to_string(), f * 4 * st))
             .collect();
-        let spec: Vec<(&str, f32, usize)> = groups.iter().map(|(k, l)| (k.as_str(), 0.1, *l)).collect();
+        let spec: Vec<(&str, f32, usize)> =
+            groups.iter().map(|(k, l)| (k.as_str(), 0.1, *l)).collect();
         let mut adam = Adam::new(&spec);
         adam.groups[0].m = (0..24).map(|k| k as f32).collect();
         let stats = DensityStats { grad: vec![1.0, 1.0, 0.0, 1.0], count: vec![1; 4] };
@@ -244,7 +245,17 @@ mod tests {
         };
         let mut next_id = 10;
         let protected = [false, false, false, true];
-        let r = densify_and_prune(&mut s, &mut adam, &stats, &protected, &settings, 1.0, 0, 1, &mut next_id);
+        let r = densify_and_prune(
+            &mut s,
+            &mut adam,
+            &stats,
+            &protected,
+            &settings,
+            1.0,
+            0,
+            1,
+            &mut next_id,
+        );
         assert_eq!(r, DensityReport { cloned: 1, split: 1, pruned: 1 });
         // kept 0 and 3 (protected, never cloned), clone of 0, two children of 1
         assert_eq!(s.ids, vec![0, 3, 10, 11, 12]);

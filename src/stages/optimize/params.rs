@@ -337,7 +337,7 @@ impl DensitySettings {
     pub fn active(&self, step: u32, steps: u32) -> bool {
         let (lo, hi) = (self.start * steps as f32, self.end * steps as f32);
         let s = step as f32;
-        s >= lo && s < hi && step > 0 && step % self.every.max(1) == 0
+        s >= lo && s < hi && step > 0 && step.is_multiple_of(self.every.max(1))
     }
 
     /// Whether opacities are reset at `step` (inside the active window only).
@@ -345,7 +345,7 @@ impl DensitySettings {
         let (lo, hi) = (self.start * steps as f32, self.end * steps as f32);
         let s = step as f32;
         match self.opacity_reset_every {
-            Some(k) => s >= lo && s < hi && step > 0 && step % k.max(1) == 0,
+            Some(k) => s >= lo && s < hi && step > 0 && step.is_multiple_of(k.max(1)),
             None => false,
         }
     }
@@ -490,9 +490,11 @@ impl OptimizeParams {
             anyhow::bail!("edge-keep-ratio must be in [0, 1], got {}", s.edge_keep_ratio);
         }
         if s.recipe == Recipe::Usplat4d {
-            for (flag, v) in
-                [("--uncertainty", &self.uncertainty), ("--keynodes", &self.keynodes), ("--edges", &self.edges)]
-            {
+            for (flag, v) in [
+                ("--uncertainty", &self.uncertainty),
+                ("--keynodes", &self.keynodes),
+                ("--edges", &self.edges),
+            ] {
                 if v.is_none() {
                     anyhow::bail!("the usplat4d recipe needs {flag} DIR");
                 }

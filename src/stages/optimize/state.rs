@@ -46,7 +46,7 @@ pub struct TrainState {
 }
 
 /// Gradients w.r.t. a [`TrainState`], same layout.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct StateGrads {
     /// Poses.
     pub poses: PoseGrads,
@@ -63,9 +63,8 @@ pub struct StateGrads {
 impl StateGrads {
     /// Zero gradients for `s`.
     pub fn zeros(s: &TrainState) -> Self {
-        let tn = s.poses.frames * s.n();
         StateGrads {
-            poses: PoseGrads { position: vec![[0.0; 3]; tn], rotation: vec![[0.0; 4]; tn] },
+            poses: PoseGrads::zeros(s.poses.frames, s.n()),
             log_scale: vec![[0.0; 3]; s.n()],
             logit_opacity: vec![0.0; s.n()],
             color: vec![[0.0; 3]; s.n()],
@@ -112,7 +111,10 @@ impl TrainState {
             logit_opacity: rows.iter().map(|&i| logit(g.opacity[i])).collect(),
             color: rows.iter().map(|&i| g.color[i]).collect(),
             sh_degree: g.sh_degree,
-            sh_rest: rows.iter().flat_map(|&i| g.sh_rest[i * k3..(i + 1) * k3].iter().copied()).collect(),
+            sh_rest: rows
+                .iter()
+                .flat_map(|&i| g.sh_rest[i * k3..(i + 1) * k3].iter().copied())
+                .collect(),
         })
     }
 
@@ -204,7 +206,10 @@ impl TrainState {
             logit_opacity: rows.iter().map(|&i| self.logit_opacity[i]).collect(),
             color: rows.iter().map(|&i| self.color[i]).collect(),
             sh_degree: self.sh_degree,
-            sh_rest: rows.iter().flat_map(|&i| self.sh_rest[i * k3..(i + 1) * k3].iter().copied()).collect(),
+            sh_rest: rows
+                .iter()
+                .flat_map(|&i| self.sh_rest[i * k3..(i + 1) * k3].iter().copied())
+                .collect(),
         }
     }
 }
