@@ -59,20 +59,27 @@ fn ok(out: std::process::Output) {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// Move finished output `R` to `name` (runs compared byte for byte must write to the same
+/// path: it is part of the provenance).
+fn keep_as(dir: &Dir, name: &str) {
+    std::fs::rename(dir.join("R"), dir.join(name)).unwrap();
+}
+
 #[test]
 fn killed_run_resumes_from_its_checkpoint_with_the_same_bytes() {
     let dir = Dir::new();
     tiny_fox(&dir);
     grey_model(&dir);
     let common = ["--steps", "6", "--checkpoint-every", "2", "--batch-frames", "3"];
-    ok(optimize(&dir, "A", &common));
-    assert!(!dir.join("A.ckpt").exists(), "a finished run removes its checkpoint");
-    let killed = optimize(&dir, "B", &[&common[..], &["--abort-after-step", "4"]].concat());
+    ok(optimize(&dir, "R", &common));
+    assert!(!dir.join("R.ckpt").exists(), "a finished run removes its checkpoint");
+    keep_as(&dir, "A");
+    let killed = optimize(&dir, "R", &[&common[..], &["--abort-after-step", "4"]].concat());
     assert!(!killed.status.success(), "the run must die after step 4");
-    assert!(dir.join("B.ckpt/checkpoint.bin").exists());
-    assert!(!dir.join("B/training_log.parquet").exists(), "no output before the end");
-    ok(optimize(&dir, "B", &common));
-    assert_same_outputs(&dir.join("A"), &dir.join("B"));
+    assert!(dir.join("R.ckpt/checkpoint.bin").exists());
+    assert!(!dir.join("R/training_log.parquet").exists(), "no output before the end");
+    ok(optimize(&dir, "R", &common));
+    assert_same_outputs(&dir.join("A"), &dir.join("R"));
     let rows = log_rows(&dir.join("A"));
     assert_eq!(rows.iter().map(|r| r.step).collect::<Vec<_>>(), (0..6).collect::<Vec<_>>());
 }
@@ -83,8 +90,10 @@ fn same_bytes_whatever_the_thread_count_and_the_loss_falls() {
     tiny_fox(&dir);
     grey_model(&dir);
     let common = ["--steps", "12", "--batch-frames", "4", "--lr-color", "0.05"];
-    ok(optimize(&dir, "T1", &[&["--threads", "1"][..], &common[..]].concat()));
-    ok(optimize(&dir, "T2", &[&["--threads", "2"][..], &common[..]].concat()));
+    ok(optimize(&dir, "R", &[&["--threads", "1"][..], &common[..]].concat()));
+    keep_as(&dir, "T1");
+    ok(optimize(&dir, "R", &[&["--threads", "2"][..], &common[..]].concat()));
+    keep_as(&dir, "T2");
     assert_same_outputs(&dir.join("T1"), &dir.join("T2"));
     let rows = log_rows(&dir.join("T1"));
     let first: f64 = rows[..3].iter().map(|r| r.loss).sum();
