@@ -7,6 +7,7 @@ pub mod evaluate;
 pub mod evaluate_tracks;
 pub mod graph;
 pub mod keynodes;
+pub mod optimize;
 pub mod render;
 pub mod segment;
 pub mod uncertainty;
