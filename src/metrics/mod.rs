@@ -13,6 +13,7 @@ pub mod bench;
 pub mod lpips;
 pub mod psnr;
 pub mod ssim;
+pub mod ssim_grad;
 pub mod tracking;
 
 use crate::image_io::Image;

@@ -16,8 +16,6 @@ use super::{Provenance, Result};
 /// Loss terms with a `loss_<term>` column, in column order (see `data_schema/training_log.md`).
 pub const LOSS_TERMS: &[&str] = &[
     "rgb",
-    "l1",
-    "ssim",
     "mask",
     "depth",
     "track",

@@ -6,6 +6,7 @@
 
 use std::path::PathBuf;
 
+use super::image_loss::ImageLossWeights;
 use crate::stages::graph::Profile;
 
 /// Which objective is optimised.
@@ -121,20 +122,19 @@ pub struct OptimizeParams {
     #[arg(long, help_heading = "Learning rates")]
     #[serde(default)]
     pub lr_lengths: Option<f32>,
-    /// Weight of 1 − SSIM in L_rgb [0.1; release L_rgb, Sec. 5.3].
+    /// λ of the SSIM term in L_rgb [paper 0.2 (SoM), release 0.1; `image_loss` docs].
     #[arg(long, help_heading = "L_rgb")]
     #[serde(default)]
     pub lambda_ssim: Option<f32>,
-    /// Weight of the mask/alpha term [paper 1 (listed in App. A.3, value unspecified),
-    /// release 0 (Sec. 5.3)].
+    /// Weight of the mask/alpha term [paper 1 (SoM), release 0].
     #[arg(long, help_heading = "L_rgb")]
     #[serde(default)]
     pub lambda_mask: Option<f32>,
-    /// Weight of the scale/shift-invariant depth term [0.1; release L_dep].
+    /// Weight of the scale/shift-invariant depth term [paper 0.5 (SoM), release 0.1].
     #[arg(long, help_heading = "L_rgb")]
     #[serde(default)]
     pub lambda_depth: Option<f32>,
-    /// Weight of the 2D track term [0.1; release L_track, iPhone cfg].
+    /// Weight of the 2D track term [paper 2 (SoM), release 0.1 (iPhone cfg)].
     #[arg(long, help_heading = "L_rgb")]
     #[serde(default)]
     pub lambda_track: Option<f32>,
@@ -249,14 +249,8 @@ pub struct OptimizeSettings {
     pub no_loss_weighting: bool,
     /// Learning rates, one Adam group each.
     pub lr: LearningRates,
-    /// Weights of L_rgb's terms.
-    pub lambda_ssim: f32,
-    /// Mask/alpha term weight.
-    pub lambda_mask: f32,
-    /// Depth term weight.
-    pub lambda_depth: f32,
-    /// 2D track term weight.
-    pub lambda_track: f32,
+    /// L_rgb's terms, weights and forms (`image_loss`, App. A.3).
+    pub image: ImageLossWeights,
     /// Graph loss weight (row 44).
     pub lambda_graph: f32,
     /// Key anchor weight (rows 39-40).
@@ -375,10 +369,7 @@ impl OptimizeSettings {
                 graph: 1e-4,
                 lengths: 1.6e-4,
             },
-            lambda_ssim: 0.1,
-            lambda_mask: pr(1.0, 0.0),
-            lambda_depth: 0.1,
-            lambda_track: 0.1,
+            image: ImageLossWeights::defaults(profile),
             lambda_graph: pr(1.0, 2.0),
             key_anchor_weight: pr(1.0, 0.0),
             nonkey_anchor_weight: pr(1.0, 0.0),
@@ -433,10 +424,13 @@ impl OptimizeParams {
                 graph: or(self.lr_graph, d.lr.graph),
                 lengths: or(self.lr_lengths, d.lr.lengths),
             },
-            lambda_ssim: or(self.lambda_ssim, d.lambda_ssim),
-            lambda_mask: or(self.lambda_mask, d.lambda_mask),
-            lambda_depth: or(self.lambda_depth, d.lambda_depth),
-            lambda_track: or(self.lambda_track, d.lambda_track),
+            image: ImageLossWeights {
+                ssim_lambda: self.lambda_ssim.map_or(d.image.ssim_lambda, f64::from),
+                mask: self.lambda_mask.map_or(d.image.mask, f64::from),
+                depth: self.lambda_depth.map_or(d.image.depth, f64::from),
+                track: self.lambda_track.map_or(d.image.track, f64::from),
+                ..d.image
+            },
             lambda_graph: or(self.lambda_graph, d.lambda_graph),
             key_anchor_weight: or(self.key_anchor_weight, d.key_anchor_weight),
             nonkey_anchor_weight: or(self.nonkey_anchor_weight, d.nonkey_anchor_weight),

@@ -13,7 +13,6 @@ use std::time::Instant;
 use super::adam::Adam;
 use super::checkpoint::{self, Checkpoint};
 use super::density::{self, DensityStats};
-use super::image_loss::RgbWeights;
 use super::params::{OptimizeParams, OptimizeSettings, Recipe};
 use super::state::TrainState;
 use super::step::{TrainingViews, image_step};
@@ -112,7 +111,7 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     let s = p.resolve()?;
     let model = Model::load(&p.model)?;
     let scene = Scene::load(&p.scene)?;
-    let views = TrainingViews::new(&scene);
+    let views = TrainingViews::new(&scene)?;
     if views.len() != model.num_frames() {
         anyhow::bail!(
             "{}: {} training frames, but the model {} has {}",
@@ -164,20 +163,17 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         }
     };
     let render = RenderSettings::default();
-    let weights = RgbWeights { l1: 1.0 };
     let bar = ctx.progress(s.steps as u64, "optimize");
     bar.set_position(c.step as u64);
     while c.step < s.steps {
         let step = c.step;
         let started = Instant::now();
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
-        let img = image_step(&c.state, &views, &batch, &weights, &render)?;
+        let img = image_step(&c.state, &views, &batch, &s.image, &render)?;
         let mut grads = img.grads;
         let mut terms: Vec<(String, f64)> = Vec::new();
-        let rgb: f64 = img.terms.iter().map(|(_, v)| v).sum();
-        terms.push(("rgb".into(), rgb));
         terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
-        let loss = rgb;
+        let loss: f64 = img.terms.iter().map(|(_, v)| v).sum();
         c.state.tie_static(&mut grads.poses);
         c.adam.begin_step();
         let st = &mut c.state;
