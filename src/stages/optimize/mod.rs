@@ -2,4 +2,5 @@
 //! per-frame poses, the motion regularisers of Appendix A.2 and the USplat4D graph losses
 //! (L_key, Eq. 9; L_non-key, Eq. 11).
 
+pub mod motion;
 pub mod poses;
