@@ -591,3 +591,117 @@ pub fn acceleration(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGr
     });
     parts.into_iter().sum()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::quat64::tests::TestRng;
+
+    /// A random track of `m` Gaussians over `t` frames and a kNN-like edge list grouped by
+    /// source.
+    fn case(seed: u64, t: usize, m: usize) -> (Track, Vec<u32>, Vec<u32>, Vec<f64>, Vec<f64>) {
+        let mut rng = TestRng(seed);
+        let p = (0..t * m).map(|_| rng.v()).collect();
+        let q = (0..t * m).map(|_| rng.q().map(|x| x + 0.6)).collect();
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        for i in 0..m as u32 {
+            for d in 1..3u32 {
+                src.push(i);
+                dst.push((i + d) % m as u32);
+            }
+        }
+        let w = src.iter().map(|_| 0.5 + 0.4 * rng.next()).collect();
+        let rest = src.iter().map(|_| 1.0 + 0.3 * rng.next()).collect();
+        (Track::new(t, m, p, q), src, dst, w, rest)
+    }
+
+    /// Every term at once: value and gradients (positions, raw rotations, w, rest).
+    fn all_terms(
+        tr: &Track,
+        src: &[u32],
+        dst: &[u32],
+        w: &[f64],
+        rest: &[f64],
+    ) -> (f64, TrackGrad, EdgeGrad) {
+        let e = EdgeSet { src, dst, w };
+        let mut g = TrackGrad::zeros(tr);
+        let mut ge = EdgeGrad::zeros(src.len());
+        let mut v = rigidity(tr, e, 1, 0.3, 1.0, &mut g, Some(&mut ge));
+        v += 0.7 * rigidity(tr, e, 3, 0.2, 0.7, &mut g, Some(&mut ge));
+        v += relative_rotation(tr, e, 2, 0.5, 1.0, &mut g, Some(&mut ge));
+        v += isometry(tr, e, rest, 0.4, 1.0, &mut g, Some(&mut ge));
+        for form in [MotionForm::Paper, MotionForm::Release] {
+            v += velocity(tr, form, 1.0, &mut g);
+            v += acceleration(tr, form, 1.0, &mut g);
+        }
+        (v, g, ge)
+    }
+
+    #[test]
+    fn every_motion_term_matches_finite_differences() {
+        let (t, m) = (7, 5);
+        let (tr, src, dst, w, rest) = case(5, t, m);
+        let (_, g, ge) = all_terms(&tr, &src, &dst, &w, &rest);
+        let h = 1e-6;
+        let mut fails = Vec::new();
+        let mut worst = 0.0f64;
+        let mut check = |what: String, analytic: f64, f: &dyn Fn(f64) -> f64| {
+            let fd = (f(h) - f(-h)) / (2.0 * h);
+            let err = (analytic - fd).abs();
+            worst = worst.max(err);
+            if err > 1e-5 * (1.0 + fd.abs()) {
+                fails.push(format!("{what}: analytic {analytic} fd {fd}"));
+            }
+        };
+        for f in 0..t {
+            for k in 0..m {
+                let idx = f * m + k;
+                for c in 0..3 {
+                    check(format!("p[{f},{k},{c}]"), g.position(f, k)[c], &|d| {
+                        let mut p = tr.p.clone();
+                        p[idx][c] += d;
+                        all_terms(&Track::new(t, m, p, tr.q.clone()), &src, &dst, &w, &rest).0
+                    });
+                }
+                for c in 0..4 {
+                    check(format!("q[{f},{k},{c}]"), g.rotation(&tr, f, k)[c], &|d| {
+                        let mut q = tr.q.clone();
+                        q[idx][c] += d;
+                        all_terms(&Track::new(t, m, tr.p.clone(), q), &src, &dst, &w, &rest).0
+                    });
+                }
+            }
+        }
+        for e in 0..src.len() {
+            check(format!("w[{e}]"), ge.w[e], &|d| {
+                let mut w2 = w.clone();
+                w2[e] += d;
+                all_terms(&tr, &src, &dst, &w2, &rest).0
+            });
+            check(format!("rest[{e}]"), ge.rest[e], &|d| {
+                let mut r2 = rest.clone();
+                r2[e] += d;
+                all_terms(&tr, &src, &dst, &w, &r2).0
+            });
+        }
+        eprintln!("motion terms: max |analytic − FD| = {worst:.2e}");
+        assert!(fails.is_empty(), "{}", fails.join("\n"));
+    }
+
+    #[test]
+    fn motion_terms_do_not_depend_on_the_thread_count() {
+        let (tr, src, dst, w, rest) = case(9, 40, 30);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let (v, g, ge) = all_terms(&tr, &src, &dst, &w, &rest);
+                (
+                    v.to_bits(),
+                    g.rows.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                    ge.w,
+                )
+            })
+        };
+        assert_eq!(run(1), run(3));
+    }
+}
