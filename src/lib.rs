@@ -15,6 +15,7 @@ pub mod cli;
 pub mod context;
 pub mod datasets;
 pub mod image_io;
+pub mod math;
 pub mod metrics;
 pub mod model;
 pub mod pipeline;

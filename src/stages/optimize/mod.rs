@@ -7,7 +7,10 @@
 pub mod adam;
 pub mod checkpoint;
 pub mod density;
+pub mod graph_loss;
 pub mod image_loss;
+pub mod motion;
+pub mod objective;
 pub mod params;
 pub mod poses;
 pub mod state;

@@ -6,6 +6,7 @@
 
 use std::path::PathBuf;
 
+use super::graph_loss::{AnchorMetric, GraphSettings};
 use super::image_loss::ImageLossWeights;
 use crate::stages::graph::Profile;
 
@@ -20,18 +21,6 @@ pub enum Recipe {
     Vanilla,
     /// L_rgb + L_key + L_non-key on the uncertainty-aware graph (paper Eq. 11).
     Usplat4d,
-}
-
-/// How the anchor and DQB deviations are measured (profile rows 15-17).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
-#[serde(rename_all = "kebab-case")]
-pub enum AnchorMetric {
-    /// ‖δ‖ in U⁻¹, U = R diag(r_x u, r_y u, r_z u) Rᵀ read literally (depth stiffer for r_z < 1).
-    Covariance,
-    /// The release's precision R_cwᵀ diag(1, 1, r_z) R_cw (depth cheaper for r_z < 1).
-    Precision,
 }
 
 /// Parameters of `usplat4d optimize`; unset values take the profile's defaults.
@@ -138,7 +127,8 @@ pub struct OptimizeParams {
     #[arg(long, help_heading = "L_rgb")]
     #[serde(default)]
     pub lambda_track: Option<f32>,
-    /// Weight of the whole graph loss [paper 1, release 2; row 44].
+    /// Weight of the whole graph loss (its DQB and key-motion terms) [paper 1, release 2;
+    /// row 44]. The key rigidity block's λs follow the profile's motion form (rows 45-50).
     #[arg(long, help_heading = "Graph")]
     #[serde(default)]
     pub lambda_graph: Option<f32>,
@@ -151,8 +141,8 @@ pub struct OptimizeParams {
     #[arg(long, help_heading = "Graph")]
     #[serde(default)]
     pub nonkey_anchor_weight: Option<f32>,
-    /// Metric of the anchor and DQB deviations [paper precision (measured, README),
-    /// release precision; rows 15-17].
+    /// Metric of the anchor and DQB deviations [paper paper-literal, release release;
+    /// rows 15-17]; `--no-loss-weighting` makes it euclidean.
     #[arg(long, value_enum, help_heading = "Graph")]
     #[serde(default)]
     pub anchor_metric: Option<AnchorMetric>,
@@ -160,31 +150,12 @@ pub struct OptimizeParams {
     #[arg(long, help_heading = "Graph")]
     #[serde(default)]
     pub r_z: Option<f32>,
-    /// Weight of the key rigidity block [paper 1, release 100; row 45].
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub lambda_key_rigidity: Option<f32>,
-    /// λ_rigid [1; row 46].
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub lambda_rigid: Option<f32>,
-    /// λ_iso [paper 1, release 100; row 47].
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub lambda_iso: Option<f32>,
-    /// λ_rot [paper 0.01, release 1; row 48].
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub lambda_rot: Option<f32>,
-    /// λ of each long rigidity offset Δ > 1 [paper 0 (no long offsets), release 100; row 50].
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub lambda_rigid_long: Option<f32>,
-    /// λ_vel [paper 0.01, release 100; row 52].
+    /// λ_vel of the usplat4d recipe [paper 0.01, release 100; row 52]; the vanilla recipe
+    /// uses App. A.2's 0.01.
     #[arg(long, help_heading = "Motion")]
     #[serde(default)]
     pub lambda_vel: Option<f32>,
-    /// λ_acc [paper 0.01, release 1; row 53].
+    /// λ_acc of the usplat4d recipe [paper 0.01, release 1; row 53]; vanilla 0.01.
     #[arg(long, help_heading = "Motion")]
     #[serde(default)]
     pub lambda_acc: Option<f32>,
@@ -251,32 +222,8 @@ pub struct OptimizeSettings {
     pub lr: LearningRates,
     /// L_rgb's terms, weights and forms (`image_loss`, App. A.3).
     pub image: ImageLossWeights,
-    /// Graph loss weight (row 44).
-    pub lambda_graph: f32,
-    /// Key anchor weight (rows 39-40).
-    pub key_anchor_weight: f32,
-    /// Non-key anchor weight (row 41).
-    pub nonkey_anchor_weight: f32,
-    /// Anchor metric (rows 15-17).
-    pub anchor_metric: AnchorMetric,
-    /// Depth ratio r_z (row 15).
-    pub r_z: f32,
-    /// Key rigidity block weight (row 45).
-    pub lambda_key_rigidity: f32,
-    /// λ_rigid (row 46).
-    pub lambda_rigid: f32,
-    /// λ_iso (row 47).
-    pub lambda_iso: f32,
-    /// λ_rot (row 48).
-    pub lambda_rot: f32,
-    /// λ per long rigidity offset (row 50).
-    pub lambda_rigid_long: f32,
-    /// λ_vel (row 52).
-    pub lambda_vel: f32,
-    /// λ_acc (row 53).
-    pub lambda_acc: f32,
-    /// Fraction of key-key edges kept per step (row 51).
-    pub edge_keep_ratio: f32,
+    /// The usplat4d recipe's graph objective (rows 15-17, 39-55).
+    pub graph: GraphSettings,
     /// kNN of the vanilla motion graph.
     pub knn_k: usize,
     /// Density control schedule and thresholds.
@@ -370,19 +317,7 @@ impl OptimizeSettings {
                 lengths: 1.6e-4,
             },
             image: ImageLossWeights::defaults(profile),
-            lambda_graph: pr(1.0, 2.0),
-            key_anchor_weight: pr(1.0, 0.0),
-            nonkey_anchor_weight: pr(1.0, 0.0),
-            anchor_metric: AnchorMetric::Precision,
-            r_z: pr(0.01, 0.1),
-            lambda_key_rigidity: pr(1.0, 100.0),
-            lambda_rigid: 1.0,
-            lambda_iso: pr(1.0, 100.0),
-            lambda_rot: pr(0.01, 1.0),
-            lambda_rigid_long: pr(0.0, 100.0),
-            lambda_vel: pr(0.01, 100.0),
-            lambda_acc: pr(0.01, 1.0),
-            edge_keep_ratio: pr(1.0, 0.8),
+            graph: GraphSettings::defaults(profile),
             knn_k: 8,
             density: DensitySettings {
                 start: pr(0.10, 0.01),
@@ -398,6 +333,33 @@ impl OptimizeSettings {
 }
 
 impl OptimizeParams {
+    /// The graph objective's settings: the profile's, with the overrides applied.
+    fn graph_settings(&self, d: &OptimizeSettings) -> GraphSettings {
+        let g = &d.graph;
+        let base_lambda = if self.profile == Profile::Paper { 1.0 } else { 2.0 };
+        let lg = self.lambda_graph.map_or(1.0, |l| l as f64 / base_lambda);
+        let f = |v: Option<f32>, d: f64| v.map_or(d, f64::from);
+        GraphSettings {
+            anchor_metric: if self.no_loss_weighting {
+                AnchorMetric::Euclidean
+            } else {
+                self.anchor_metric.unwrap_or(g.anchor_metric)
+            },
+            r_xyz: [g.r_xyz[0], g.r_xyz[1], f(self.r_z, g.r_xyz[2])],
+            key_anchor: f(self.key_anchor_weight, g.key_anchor),
+            nonkey_anchor: f(self.nonkey_anchor_weight, g.nonkey_anchor),
+            dqb: lg * g.dqb,
+            dqb_rotation: lg * g.dqb_rotation,
+            key_motion: lg * g.key_motion,
+            lambda_vel_acc: [
+                f(self.lambda_vel, g.lambda_vel_acc[0]),
+                f(self.lambda_acc, g.lambda_vel_acc[1]),
+            ],
+            edge_keep_ratio: f(self.edge_keep_ratio, g.edge_keep_ratio),
+            ..g.clone()
+        }
+    }
+
     /// The profile's defaults with the overrides applied, checked.
     pub fn resolve(&self) -> anyhow::Result<OptimizeSettings> {
         let d = OptimizeSettings::defaults(self.profile, self.recipe);
@@ -431,19 +393,7 @@ impl OptimizeParams {
                 track: self.lambda_track.map_or(d.image.track, f64::from),
                 ..d.image
             },
-            lambda_graph: or(self.lambda_graph, d.lambda_graph),
-            key_anchor_weight: or(self.key_anchor_weight, d.key_anchor_weight),
-            nonkey_anchor_weight: or(self.nonkey_anchor_weight, d.nonkey_anchor_weight),
-            anchor_metric: self.anchor_metric.unwrap_or(d.anchor_metric),
-            r_z: or(self.r_z, d.r_z),
-            lambda_key_rigidity: or(self.lambda_key_rigidity, d.lambda_key_rigidity),
-            lambda_rigid: or(self.lambda_rigid, d.lambda_rigid),
-            lambda_iso: or(self.lambda_iso, d.lambda_iso),
-            lambda_rot: or(self.lambda_rot, d.lambda_rot),
-            lambda_rigid_long: or(self.lambda_rigid_long, d.lambda_rigid_long),
-            lambda_vel: or(self.lambda_vel, d.lambda_vel),
-            lambda_acc: or(self.lambda_acc, d.lambda_acc),
-            edge_keep_ratio: or(self.edge_keep_ratio, d.edge_keep_ratio),
+            graph: self.graph_settings(&d),
             knn_k: self.knn_k.unwrap_or(d.knn_k),
             density: DensitySettings {
                 start: or(self.density_start, d.density.start),
@@ -480,8 +430,8 @@ impl OptimizeParams {
                 anyhow::bail!("{name} must be a non-negative number, got {v}");
             }
         }
-        if !(0.0..=1.0).contains(&s.edge_keep_ratio) {
-            anyhow::bail!("edge-keep-ratio must be in [0, 1], got {}", s.edge_keep_ratio);
+        if !(0.0..=1.0).contains(&s.graph.edge_keep_ratio) {
+            anyhow::bail!("edge-keep-ratio must be in [0, 1], got {}", s.graph.edge_keep_ratio);
         }
         if s.recipe == Recipe::Usplat4d {
             for (flag, v) in [
@@ -506,9 +456,8 @@ mod tests {
     fn profiles_differ_where_the_release_table_says() {
         let p = OptimizeSettings::defaults(Profile::Paper, Recipe::Usplat4d);
         let r = OptimizeSettings::defaults(Profile::Release, Recipe::Usplat4d);
-        assert_eq!((p.lambda_graph, r.lambda_graph), (1.0, 2.0));
-        assert_eq!((p.lambda_iso, r.lambda_iso), (1.0, 100.0));
-        assert_eq!((p.lambda_vel, r.lambda_vel), (0.01, 100.0));
+        assert_eq!((p.graph.key_motion, r.graph.key_motion), (1.0, 200.0));
+        assert_eq!((p.graph.lambda_vel_acc, r.graph.lambda_vel_acc), ([0.01, 0.01], [100.0, 1.0]));
         assert_eq!((p.density.start, r.density.start), (0.10, 0.01));
         assert_eq!(p.lr, r.lr, "the paper gives no learning rates: both use the release's");
     }

@@ -10,10 +10,13 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use super::adam::Adam;
+use super::adam::{Adam, Group};
 use super::checkpoint::{self, Checkpoint};
 use super::density::{self, DensityStats};
+use super::graph_loss::GraphObjective;
+use super::objective::{GraphSource, KnnMotion, build_graph};
 use super::params::{OptimizeParams, OptimizeSettings, Recipe};
+use super::poses::Poses;
 use super::state::TrainState;
 use super::step::{TrainingViews, image_step};
 use crate::context::Context;
@@ -23,7 +26,7 @@ use crate::scene::Scene;
 use crate::stages::graph::{Rng, mix};
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
-use crate::tables::training_log::LogRow;
+use crate::tables::training_log::{LR_GROUPS, LogRow};
 use crate::tables::{self, Provenance, Table};
 
 /// The frames of step `step`: positions `step·B .. step·B + B` of an endless stream made of
@@ -59,6 +62,131 @@ fn read_graph(p: &OptimizeParams) -> anyhow::Result<Option<GraphInputs>> {
     let keys = tables::key_nodes::read(&kn.join(tables::key_nodes::KeyNodesTable::file_name()))?;
     let edges = tables::edges::read(&ed.join(tables::edges::EdgesTable::file_name()))?;
     Ok(Some(GraphInputs { keys, edges }))
+}
+
+/// The recipe's non-image terms.
+enum Objective {
+    Knn(KnnMotion),
+    Graph(Box<GraphObjective>),
+}
+
+fn build_objective(
+    s: &OptimizeSettings,
+    source: Option<&GraphSource>,
+    state: &TrainState,
+    learned: Option<&Edges>,
+) -> anyhow::Result<Objective> {
+    Ok(match source {
+        None => Objective::Knn(KnnMotion::new(state, s.knn_k)),
+        Some(src) => Objective::Graph(Box::new(build_graph(
+            src,
+            state,
+            learned.unwrap_or(&src.edges),
+            &s.graph,
+        )?)),
+    })
+}
+
+/// One Adam group per trainable tensor of the graph objective, after the image groups.
+fn add_graph_groups(adam: &mut Adam, o: &mut GraphObjective, s: &OptimizeSettings) {
+    for slice in o.params_mut() {
+        let lr = if slice.lr_key == "dists_key" { s.lr.lengths } else { s.lr.graph };
+        adam.groups.push(Group {
+            name: slice.name.to_string(),
+            lr,
+            m: vec![0.0; slice.values.len()],
+            v: vec![0.0; slice.values.len()],
+        });
+    }
+}
+
+/// Restore the graph objective's tensors from a checkpoint.
+fn restore_graph(o: &mut GraphObjective, saved: &[(String, Vec<f32>)]) -> anyhow::Result<()> {
+    let slices = o.params_mut();
+    if slices.len() != saved.len() {
+        anyhow::bail!(
+            "checkpoint: {} graph tensors, the objective has {}",
+            saved.len(),
+            slices.len()
+        );
+    }
+    for (slice, (name, v)) in slices.into_iter().zip(saved) {
+        if slice.name != name || slice.values.len() != v.len() {
+            anyhow::bail!(
+                "checkpoint: graph tensor {name} does not match the objective's {}",
+                slice.name
+            );
+        }
+        slice.values.copy_from_slice(v);
+    }
+    Ok(())
+}
+
+/// The training log's learning rates: image groups by name, graph tensors as `graph` and
+/// `lengths`.
+fn log_rates(adam: &Adam) -> Vec<(String, f32)> {
+    let mut out: Vec<(String, f32)> = Vec::new();
+    for g in &adam.groups {
+        let name = match g.name.as_str() {
+            "dists_key" => "lengths",
+            n if LR_GROUPS.contains(&n) => n,
+            _ => "graph",
+        };
+        if !out.iter().any(|(k, _)| k == name) {
+            out.push((name.to_string(), g.lr));
+        }
+    }
+    out
+}
+
+/// p°, u and camera rotations the graph objective is built from.
+fn graph_source(
+    p: &OptimizeParams,
+    model: &Model,
+    views: &TrainingViews,
+    g: &GraphInputs,
+) -> anyhow::Result<GraphSource> {
+    let (nt, n) = (model.num_frames(), model.gaussians.len());
+    let mut initial = Poses {
+        frames: nt,
+        n,
+        position: Vec::with_capacity(nt * n),
+        rotation: Vec::with_capacity(nt * n),
+    };
+    for t in 0..nt {
+        let f = model.frame(t)?;
+        initial.position.extend(f.position);
+        initial.rotation.extend(f.rotation);
+    }
+    let row: HashMap<u32, usize> =
+        model.gaussians.id.iter().enumerate().map(|(r, &i)| (i, r)).collect();
+    let dir = p
+        .uncertainty
+        .as_ref()
+        .ok_or_else(|| anyhow::anyhow!("the usplat4d recipe needs --uncertainty DIR"))?;
+    let reader = tables::uncertainty::UncertaintyReader::open(
+        &dir.join(tables::uncertainty::UncertaintyTable::file_name()),
+    )?;
+    if reader.num_frames() != nt {
+        anyhow::bail!("{}: {} frames, the model has {nt}", dir.display(), reader.num_frames());
+    }
+    let cols: Vec<Option<usize>> = {
+        let at: HashMap<u32, usize> =
+            reader.ids().iter().enumerate().map(|(k, &i)| (i, k)).collect();
+        model.gaussians.id.iter().map(|i| at.get(i).copied()).collect()
+    };
+    let mut u = Vec::with_capacity(nt * n);
+    for t in 0..nt {
+        let f = reader.frame(t)?;
+        u.extend(cols.iter().map(|c| c.map_or(1e8, |k| f.u[k])));
+    }
+    let rot_cw = (0..nt)
+        .map(|t| {
+            let w2c = views.training_camera(t).w2c.as_dmat4();
+            glam::DMat3::from_mat4(w2c)
+        })
+        .collect();
+    Ok(GraphSource { keys: g.keys.clone(), edges: g.edges.clone(), row, initial, u, rot_cw })
 }
 
 /// Input files whose bytes the checkpoint fingerprint covers.
@@ -121,10 +249,10 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
             model.num_frames()
         );
     }
-    let graph = read_graph(p)?;
-    if s.recipe == Recipe::Usplat4d {
-        anyhow::bail!("the usplat4d recipe's graph objective is not merged in this build");
-    }
+    let graph = match s.recipe {
+        Recipe::Usplat4d => read_graph(p)?,
+        Recipe::Vanilla => None,
+    };
     let role: HashMap<u32, Role> = graph
         .as_ref()
         .map(|g| g.keys.id.iter().copied().zip(g.keys.role.iter().copied()).collect())
@@ -162,6 +290,18 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
             }
         }
     };
+    let source = match &graph {
+        Some(g) => Some(graph_source(p, &model, &views, g)?),
+        None => None,
+    };
+    let mut objective = build_objective(&s, source.as_ref(), &c.state, None)?;
+    if let Objective::Graph(o) = &mut objective {
+        if c.step == 0 {
+            add_graph_groups(&mut c.adam, o, &s);
+        } else {
+            restore_graph(o, &c.graph)?;
+        }
+    }
     let render = RenderSettings::default();
     let bar = ctx.progress(s.steps as u64, "optimize");
     bar.set_position(c.step as u64);
@@ -173,7 +313,14 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         let mut grads = img.grads;
         let mut terms: Vec<(String, f64)> = Vec::new();
         terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
-        let loss: f64 = img.terms.iter().map(|(_, v)| v).sum();
+        let extra = match &mut objective {
+            Objective::Knn(k) => k.evaluate(&c.state.poses, &mut grads.poses),
+            Objective::Graph(o) => {
+                o.evaluate(&c.state.poses, &batch, mix(s.seed ^ step as u64), &mut grads.poses)
+            }
+        };
+        terms.extend(extra.iter().map(|(k, v)| (k.to_string(), *v)));
+        let loss: f64 = terms.iter().map(|(_, v)| v).sum();
         c.state.tie_static(&mut grads.poses);
         c.adam.begin_step();
         let st = &mut c.state;
@@ -183,6 +330,11 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         c.adam.update(3, &mut st.logit_opacity, &grads.logit_opacity);
         c.adam.update(4, st.color.as_flattened_mut(), grads.color.as_flattened());
         c.adam.update(5, &mut st.sh_rest, &grads.sh_rest);
+        if let Objective::Graph(o) = &mut objective {
+            for (k, slice) in o.params_mut().into_iter().enumerate() {
+                c.adam.update(6 + k, slice.values, slice.grads);
+            }
+        }
         c.density.add(&img.screen_grad, &img.screen_count);
         if s.density.active(step, s.steps) {
             let protected: Vec<bool> =
@@ -200,6 +352,15 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
             );
             tracing::info!(step, ?r, n = c.state.n(), "density control");
             c.density = DensityStats::new(c.state.n());
+            let learned = match &objective {
+                Objective::Graph(o) => Some(o.learned_edges().0),
+                Objective::Knn(_) => None,
+            };
+            objective = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
+            c.adam.groups.truncate(6);
+            if let Objective::Graph(o) = &mut objective {
+                add_graph_groups(&mut c.adam, o, &s);
+            }
         }
         if s.density.reset(step, s.steps) {
             density::reset_opacity(&mut c.state, &mut c.adam);
@@ -210,12 +371,19 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
             seconds: started.elapsed().as_secs_f64(),
             loss,
             terms,
-            lr: c.adam.groups.iter().map(|g| (g.name.clone(), g.lr)).collect(),
+            lr: log_rates(&c.adam),
         });
         c.step += 1;
         bar.set_message(format!("loss {loss:.4}"));
         bar.inc(1);
         if s.checkpoint_every.is_some_and(|k| c.step.is_multiple_of(k)) && c.step < s.steps {
+            if let Objective::Graph(o) = &mut objective {
+                c.graph = o
+                    .params_mut()
+                    .into_iter()
+                    .map(|p| (p.name.to_string(), p.values.to_vec()))
+                    .collect();
+            }
             checkpoint::save(&ckpt_path, &fp, &c)?;
             if p.abort_after_step == Some(c.step) {
                 std::process::abort();
@@ -223,7 +391,11 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         }
     }
     bar.finish_and_clear();
-    write_outputs(p, &s, &c, graph.as_ref())?;
+    let learned = match &objective {
+        Objective::Graph(o) => Some(o.learned_edges().0),
+        Objective::Knn(_) => None,
+    };
+    write_outputs(p, &s, &c, graph.as_ref().zip(learned.as_ref()))?;
     let dir = checkpoint::dir_of(&p.out);
     if dir.exists() {
         std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
@@ -237,7 +409,7 @@ fn write_outputs(
     p: &OptimizeParams,
     s: &OptimizeSettings,
     c: &Checkpoint,
-    graph: Option<&GraphInputs>,
+    graph: Option<(&GraphInputs, &Edges)>,
 ) -> anyhow::Result<()> {
     let prov = Provenance::new("optimize", &serde_json::json!({ "params": p, "resolved": s }));
     let st = &c.state;
@@ -252,21 +424,22 @@ fn write_outputs(
         &c.log,
         &prov,
     )?;
-    if let Some(g) = graph {
-        let (keys, edges) = trained_graph(st, &g.keys, &g.edges);
+    if let Some((g, learned)) = graph {
+        let (keys, _) = trained_graph(st, &g.keys, &g.edges);
+        let edges = learned;
         tables::key_nodes::write(
             &p.out.join(tables::key_nodes::KeyNodesTable::file_name()),
             &keys,
             &prov,
         )?;
-        tables::edges::write(&p.out.join(tables::edges::EdgesTable::file_name()), &edges, &prov)?;
+        tables::edges::write(&p.out.join(tables::edges::EdgesTable::file_name()), edges, &prov)?;
     }
     Ok(())
 }
 
 /// Roles and edges of the trained Gaussians: inputs' rows for surviving Gaussians, the
 /// origin's t̂ and non-key edges for new ones (role `nonkey`).
-fn trained_graph(st: &TrainState, keys: &KeyNodes, edges: &Edges) -> (KeyNodes, Edges) {
+pub fn trained_graph(st: &TrainState, keys: &KeyNodes, edges: &Edges) -> (KeyNodes, Edges) {
     let row: HashMap<u32, usize> = keys.id.iter().enumerate().map(|(r, &i)| (i, r)).collect();
     let alive: std::collections::HashSet<u32> = st.ids.iter().copied().collect();
     let mut out = KeyNodes::default();
