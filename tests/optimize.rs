@@ -130,3 +130,83 @@ fn density_control_adds_gaussians_with_fresh_ids() {
     assert_eq!(rows[1].num_gaussians, rows[0].num_gaussians, "inactive at step 1");
     assert_eq!(after.num_frames(), before.num_frames());
 }
+
+/// The graph stages on `model` with `profile` into `U_`, `K_`, `E_` + profile.
+fn graph_stages(dir: &Dir, model: &str, profile: &str) {
+    let (u, k, e) = (format!("U_{profile}"), format!("K_{profile}"), format!("E_{profile}"));
+    let m = ["--model", model, "--profile", profile];
+    dir.ok(&[&["uncertainty"][..], &m[..], &["--scene", "S", "--out", &u]].concat());
+    dir.ok(&[&["keynodes"][..], &m[..], &["--uncertainty", &u, "--out", &k]].concat());
+    let e_args = ["--scene", "S", "--uncertainty", &u, "--keynodes", &k, "--out", &e];
+    dir.ok(&[&["edges"][..], &m[..], &e_args[..]].concat());
+}
+
+fn usplat4d_args(profile: &str) -> Vec<String> {
+    let (u, k, e) = (format!("U_{profile}"), format!("K_{profile}"), format!("E_{profile}"));
+    ["--recipe", "usplat4d", "--profile", profile, "--uncertainty", &u, "--keynodes", &k]
+        .iter()
+        .map(|s| s.to_string())
+        .chain(["--edges".to_string(), e])
+        .collect()
+}
+
+#[test]
+fn usplat4d_recipe_writes_a_model_its_roles_and_the_learned_graph() {
+    let dir = Dir::new();
+    tiny_fox(&dir);
+    for profile in ["paper", "release"] {
+        graph_stages(&dir, "S/oracle", profile);
+        let out = format!("O_{profile}");
+        let mut args: Vec<String> =
+            ["optimize", "--model", "S/oracle", "--scene", "S", "--out", &out, "--steps", "4"]
+                .iter()
+                .map(|s| s.to_string())
+                .collect();
+        args.extend(usplat4d_args(profile));
+        args.extend(
+            ["--batch-frames", "2", "--density-start", "0", "--densify-every", "2"]
+                .map(String::from),
+        );
+        let a: Vec<&str> = args.iter().map(String::as_str).collect();
+        dir.ok(&a);
+        let rows = log_rows(&dir.join(&out));
+        let terms: Vec<&str> = rows[0].terms.iter().map(|(k, _)| k.as_str()).collect();
+        println!("usplat4d [{profile}] terms at step 0: {:?}", rows[0].terms);
+        assert!(terms.contains(&"nonkey_dqb") && terms.contains(&"key_rigidity"), "{terms:?}");
+        let keys =
+            usplat4d::tables::key_nodes::read(&dir.join(&out).join("key_nodes.parquet")).unwrap();
+        let model = Model::load(&dir.join(&out)).unwrap();
+        assert!(keys.id.iter().all(|i| model.gaussians.id.contains(i)));
+        dir.ok(&["check", &out]);
+        dir.ok(&["segment", "--edges", &out, "--out", &format!("G_{profile}")]);
+    }
+    // a killed usplat4d run resumes with the same bytes too (graph tensors in the checkpoint)
+    let resume = |out: &str, extra: &[&str]| {
+        let mut args: Vec<String> =
+            ["optimize", "--model", "S/oracle", "--scene", "S", "--out", out, "--steps", "4"]
+                .iter()
+                .map(|s| s.to_string())
+                .collect();
+        args.extend(usplat4d_args("release"));
+        args.extend(["--batch-frames", "2", "--checkpoint-every", "2"].map(String::from));
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let a: Vec<&str> = args.iter().map(String::as_str).collect();
+        dir.run(&a)
+    };
+    ok(resume("R", &[]));
+    keep_as(&dir, "UA");
+    assert!(!resume("R", &["--abort-after-step", "2"]).status.success());
+    ok(resume("R", &[]));
+    assert_same_outputs(&dir.join("UA"), &dir.join("R"));
+    assert!(read(&dir.join("UA/edges.parquet")) == read(&dir.join("R/edges.parquet")));
+    // ablation (c) runs too
+    let mut args: Vec<String> =
+        ["optimize", "--model", "S/oracle", "--scene", "S", "--out", "C", "--steps", "2"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+    args.extend(usplat4d_args("paper"));
+    args.push("--no-loss-weighting".into());
+    let a: Vec<&str> = args.iter().map(String::as_str).collect();
+    dir.ok(&a);
+}

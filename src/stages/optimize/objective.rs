@@ -53,7 +53,37 @@ impl KnnMotion {
             (0..state.n() as u32).filter(|&i| state.dynamic[i as usize]).collect();
         let p0: Vec<[f32; 3]> = nodes.iter().map(|&i| state.positions(0)[i as usize]).collect();
         let (src, dst, w, rest) = motion::knn_edges(&p0, k);
-        KnnMotion { nodes, src, dst, w, rest }
+        // stored as f32 in checkpoints: round now so a resumed run sees the same values
+        let r32 = |v: Vec<f64>| v.into_iter().map(|x| x as f32 as f64).collect();
+        KnnMotion { nodes, src, dst, w: r32(w), rest: r32(rest) }
+    }
+
+    /// The graph as named tensors for a checkpoint (indices are exact in f32 below 2²⁴),
+    /// since a resumed run's current positions would give other neighbours.
+    pub fn to_tensors(&self) -> Vec<(String, Vec<f32>)> {
+        let f = |v: &[u32]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        let g = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        vec![
+            ("knn_nodes".into(), f(&self.nodes)),
+            ("knn_src".into(), f(&self.src)),
+            ("knn_dst".into(), f(&self.dst)),
+            ("knn_w".into(), g(&self.w)),
+            ("knn_rest".into(), self.rest.iter().map(|&x| x as f32).collect()),
+        ]
+    }
+
+    /// The graph saved by [`Self::to_tensors`]; `None` when the tensors are not one.
+    pub fn from_tensors(t: &[(String, Vec<f32>)]) -> Option<Self> {
+        let get = |name: &str| t.iter().find(|(k, _)| k == name).map(|(_, v)| v);
+        let u = |v: &Vec<f32>| v.iter().map(|&x| x as u32).collect::<Vec<u32>>();
+        let d = |v: &Vec<f32>| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
+        Some(KnnMotion {
+            nodes: u(get("knn_nodes")?),
+            src: u(get("knn_src")?),
+            dst: u(get("knn_dst")?),
+            w: d(get("knn_w")?),
+            rest: d(get("knn_rest")?),
+        })
     }
 
     /// Evaluate on `poses`, add gradients, return the weighted terms.

@@ -295,11 +295,13 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         None => None,
     };
     let mut objective = build_objective(&s, source.as_ref(), &c.state, None)?;
-    if let Objective::Graph(o) = &mut objective {
-        if c.step == 0 {
-            add_graph_groups(&mut c.adam, o, &s);
-        } else {
-            restore_graph(o, &c.graph)?;
+    match &mut objective {
+        Objective::Graph(o) if c.step == 0 => add_graph_groups(&mut c.adam, o, &s),
+        Objective::Graph(o) => restore_graph(o, &c.graph)?,
+        Objective::Knn(_) if c.step == 0 => {}
+        Objective::Knn(k) => {
+            *k = KnnMotion::from_tensors(&c.graph)
+                .ok_or_else(|| anyhow::anyhow!("{}: no kNN graph", ckpt_path.display()))?;
         }
     }
     let render = RenderSettings::default();
@@ -377,13 +379,14 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         bar.set_message(format!("loss {loss:.4}"));
         bar.inc(1);
         if s.checkpoint_every.is_some_and(|k| c.step.is_multiple_of(k)) && c.step < s.steps {
-            if let Objective::Graph(o) = &mut objective {
-                c.graph = o
+            c.graph = match &mut objective {
+                Objective::Graph(o) => o
                     .params_mut()
                     .into_iter()
                     .map(|p| (p.name.to_string(), p.values.to_vec()))
-                    .collect();
-            }
+                    .collect(),
+                Objective::Knn(k) => k.to_tensors(),
+            };
             checkpoint::save(&ckpt_path, &fp, &c)?;
             if p.abort_after_step == Some(c.step) {
                 std::process::abort();
