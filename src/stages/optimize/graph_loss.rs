@@ -886,6 +886,61 @@ mod tests {
         if c < 3 { p.position[k][c] = v } else { p.rotation[k][c - 3] = v }
     }
 
+    /// Timing at the brief's size: T = 121, N = 20,000 (400 keys), batch 8. Run with
+    /// `cargo test --release --lib evaluate_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "timing, not a check"]
+    fn evaluate_timing_t121_n20k() {
+        let (t, n, nk) = (121, 20_000, 400);
+        let mut rng = TestRng(5);
+        let mut p0 = Poses::identity(t, n);
+        for k in 0..t * n {
+            p0.position[k] = rng.v().map(|x| x as f32);
+            p0.rotation[k] = rng.q().map(|x| (x + 0.7) as f32);
+        }
+        let keys: Vec<u32> = (0..nk as u32).map(|k| k * 50).collect();
+        let nonkeys: Vec<u32> = (0..n as u32).filter(|i| i % 50 != 0).collect();
+        let u: Vec<f32> = (0..t * n).map(|_| (0.55 + 0.45 * rng.next()) as f32).collect();
+        let rot = vec![DMat3::IDENTITY; t];
+        let ids: Vec<u32> = (0..n as u32).collect();
+        let t_hat: Vec<u32> = nonkeys.iter().map(|i| i % t as u32).collect();
+        let nonkey_edges: Vec<Vec<(u32, f32)>> = nonkeys
+            .iter()
+            .map(|i| (0..5).map(|j| (keys[(*i as usize / 50 + j) % nk], 0.2)).collect())
+            .collect();
+        for (profile, k) in [(Profile::Paper, 8), (Profile::Release, 120)] {
+            let key_edges: Vec<(u32, u32, f32)> = (0..nk)
+                .flat_map(|a| (1..=k).map(move |d| (a, (a + d) % nk)))
+                .map(|(a, b)| (keys[a], keys[b], 1.0))
+                .collect();
+            let inp = GraphInputs {
+                initial: &p0,
+                ids: &ids,
+                keys: &keys,
+                nonkeys: &nonkeys,
+                t_hat: &t_hat,
+                nonkey_edges: &nonkey_edges,
+                key_edges: &key_edges,
+                u: &u,
+                rot_cw: &rot,
+            };
+            let mut obj = GraphObjective::new(&inp, GraphSettings::defaults(profile)).unwrap();
+            let mut g = PoseGrads::zeros(t, n);
+            let frames = [3, 17, 30, 44, 58, 71, 90, 111];
+            let start = std::time::Instant::now();
+            let reps = 3;
+            for r in 0..reps {
+                g.clear();
+                obj.evaluate(&p0, &frames, r, &mut g);
+            }
+            let ms = start.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            eprintln!(
+                "evaluate {profile:?} (key k = {k}): {ms:.0} ms, {} threads",
+                rayon::current_num_threads()
+            );
+        }
+    }
+
     #[test]
     fn learned_edges_are_normalised_per_source() {
         let (obj, _) = case(GraphSettings::defaults(Profile::Release));
