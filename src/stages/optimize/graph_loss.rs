@@ -934,6 +934,31 @@ mod tests {
                 obj.evaluate(&p0, &frames, r, &mut g);
             }
             let ms = start.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            let part = |f: &mut dyn FnMut()| {
+                let s = std::time::Instant::now();
+                f();
+                s.elapsed().as_secs_f64() * 1e3
+            };
+            let all: Vec<u32> = keys.iter().chain(&nonkeys).copied().collect();
+            let smooth = part(&mut || {
+                let tr = Track::gather(&p0, &all);
+                let mut tg = TrackGrad::zeros(&tr);
+                motion::velocity(&tr, obj.s.motion, 1.0, &mut tg);
+                motion::acceleration(&tr, obj.s.motion, 1.0, &mut tg);
+                tg.scatter(&tr, &all, &mut g);
+            });
+            let dqb_ms = part(&mut || {
+                obj.dqb_terms(&p0, &frames, &mut g);
+            });
+            let key_ms = part(&mut || {
+                obj.key_motion(&p0, 1, &mut g);
+            });
+            let anchor_ms = part(&mut || {
+                obj.anchor(&p0, &all, 1.0, &mut g);
+            });
+            eprintln!(
+                "  smoothness {smooth:.0} ms, DQB {dqb_ms:.0} ms, key motion {key_ms:.0} ms, anchors {anchor_ms:.0} ms"
+            );
             eprintln!(
                 "evaluate {profile:?} (key k = {k}): {ms:.0} ms, {} threads",
                 rayon::current_num_threads()
