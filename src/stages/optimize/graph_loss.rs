@@ -727,3 +727,255 @@ impl GraphObjective {
         (sum_p * norm, sum_q * norm)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::quat64::tests::TestRng;
+    use crate::stages::graph::Profile;
+
+    /// T = 22 frames (so the release's Δ = 10 term is on), 3 keys and 4 non-keys.
+    fn case(s: GraphSettings) -> (GraphObjective, Poses) {
+        let (t, n) = (22, 7);
+        let mut rng = TestRng(21);
+        let mut p0 = Poses::identity(t, n);
+        for k in 0..t * n {
+            p0.position[k] = rng.v().map(|x| x as f32);
+            p0.rotation[k] = rng.q().map(|x| (x + 0.7) as f32);
+        }
+        let keys = [0u32, 2, 4];
+        let nonkeys = [1u32, 3, 5, 6];
+        let key_edges: Vec<(u32, u32, f32)> = keys
+            .iter()
+            .flat_map(|&a| keys.iter().filter(move |&&b| b != a).map(move |&b| (a, b, 0.5)))
+            .collect();
+        let nonkey_edges: Vec<Vec<(u32, f32)>> = vec![
+            vec![(0, 0.6), (2, 0.4)],
+            vec![(2, 1.0), (4, 1.0), (0, 0.5)],
+            vec![(4, 1.0)],
+            vec![],
+        ];
+        let u: Vec<f32> = (0..t * n).map(|_| (0.55 + 0.45 * rng.next()) as f32).collect();
+        let rot: Vec<DMat3> = (0..t)
+            .map(|f| DMat3::from_euler(glam::EulerRot::XYZ, 0.1 * f as f64, -0.7, 0.3))
+            .collect();
+        let ids: Vec<u32> = (100..100 + n as u32).collect();
+        let inp = GraphInputs {
+            initial: &p0,
+            ids: &ids,
+            keys: &keys,
+            nonkeys: &nonkeys,
+            t_hat: &[3, 0, 7, 1],
+            nonkey_edges: &nonkey_edges,
+            key_edges: &key_edges,
+            u: &u,
+            rot_cw: &rot,
+        };
+        let obj = GraphObjective::new(&inp, s).unwrap();
+        // Move the poses away from p° (and the raw weights off uniform) so no term is at a kink.
+        let mut poses = p0.clone();
+        for k in 0..t * n {
+            for c in 0..3 {
+                poses.position[k][c] += (0.2 * rng.next()) as f32;
+            }
+            for c in 0..4 {
+                poses.rotation[k][c] += (0.2 * rng.next()) as f32;
+            }
+        }
+        (obj, poses)
+    }
+
+    fn total(obj: &mut GraphObjective, poses: &Poses) -> f64 {
+        let mut g = PoseGrads::zeros(poses.frames, poses.n);
+        obj.evaluate(poses, &[1, 4, 20], 7, &mut g).iter().map(|x| x.1).sum()
+    }
+
+    #[test]
+    fn every_graph_term_matches_finite_differences() {
+        let mut fails = Vec::new();
+        let mut report = Vec::new();
+        let variants = [
+            ("paper", GraphSettings::defaults(Profile::Paper)),
+            ("release", GraphSettings::defaults(Profile::Release)),
+            (
+                "release-with-anchors",
+                GraphSettings {
+                    key_anchor: 1.0,
+                    nonkey_anchor: 1.0,
+                    ..GraphSettings::defaults(Profile::Release)
+                },
+            ),
+            (
+                "no-loss-weighting",
+                GraphSettings {
+                    anchor_metric: AnchorMetric::Euclidean,
+                    ..GraphSettings::defaults(Profile::Paper)
+                },
+            ),
+        ];
+        for (name, s) in variants {
+            let (mut obj, mut poses) = case(s);
+            for k in 0..obj.w_raw.len() {
+                obj.w_raw[k] *= 1.0 + 0.3 * (k as f32 * 0.37).sin();
+            }
+            let mut g = PoseGrads::zeros(poses.frames, poses.n);
+            let terms = obj.evaluate(&poses, &[1, 4, 20], 7, &mut g);
+            assert!(terms.iter().all(|t| t.1.is_finite()), "{name}: {terms:?}");
+            let own: Vec<(&str, Vec<f32>)> =
+                obj.params_mut().into_iter().map(|p| (p.name, p.grads.to_vec())).collect();
+            let h = 1e-4f32;
+            let mut worst = 0.0f64;
+            let mut check = |what: String, analytic: f64, fp: f64, fm: f64, step: f64| {
+                let fd = (fp - fm) / step;
+                let err = (analytic - fd).abs();
+                let tol = 2e-3 * (1.0 + fd.abs());
+                worst = worst.max(err / (1.0 + fd.abs()));
+                if err > tol {
+                    fails.push(format!("{name} {what}: analytic {analytic} fd {fd}"));
+                }
+            };
+            for k in 0..poses.position.len() {
+                for c in 0..7 {
+                    let x = get(&poses, k, c);
+                    set(&mut poses, k, c, x + h);
+                    let xp = get(&poses, k, c);
+                    let fp = total(&mut obj, &poses);
+                    set(&mut poses, k, c, x - h);
+                    let xm = get(&poses, k, c);
+                    let fm = total(&mut obj, &poses);
+                    set(&mut poses, k, c, x);
+                    let a = if c < 3 { g.position[k][c] } else { g.rotation[k][c - 3] };
+                    check(format!("pose {k} comp {c}"), a as f64, fp, fm, (xp - xm) as f64);
+                }
+            }
+            for (pi, (pname, grads)) in own.iter().enumerate() {
+                for k in 0..grads.len() {
+                    let mut eval = |d: f32| {
+                        let x = {
+                            let mut ps = obj.params_mut();
+                            let v = &mut ps[pi].values[k];
+                            let x = *v;
+                            *v = x + d;
+                            (x, *v)
+                        };
+                        let f = total(&mut obj, &poses);
+                        obj.params_mut()[pi].values[k] = x.0;
+                        (f, x.1 as f64)
+                    };
+                    let (fp, xp) = eval(h);
+                    let (fm, xm) = eval(-h);
+                    check(format!("{pname}[{k}]"), grads[k] as f64, fp, fm, xp - xm);
+                }
+            }
+            report.push(format!("{name}: max rel err {worst:.1e}"));
+        }
+        eprintln!("graph objective FD: {}", report.join(", "));
+        assert!(
+            fails.is_empty(),
+            "{} failures:\n{}",
+            fails.len(),
+            fails[..fails.len().min(30)].join("\n")
+        );
+    }
+
+    fn get(p: &Poses, k: usize, c: usize) -> f32 {
+        if c < 3 { p.position[k][c] } else { p.rotation[k][c - 3] }
+    }
+
+    fn set(p: &mut Poses, k: usize, c: usize, v: f32) {
+        if c < 3 { p.position[k][c] = v } else { p.rotation[k][c - 3] = v }
+    }
+
+    /// Timing at the brief's size: T = 121, N = 20,000 (400 keys), batch 8. Run with
+    /// `cargo test --release --lib evaluate_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "timing, not a check"]
+    fn evaluate_timing_t121_n20k() {
+        let (t, n, nk) = (121, 20_000, 400);
+        let mut rng = TestRng(5);
+        let mut p0 = Poses::identity(t, n);
+        for k in 0..t * n {
+            p0.position[k] = rng.v().map(|x| x as f32);
+            p0.rotation[k] = rng.q().map(|x| (x + 0.7) as f32);
+        }
+        let keys: Vec<u32> = (0..nk as u32).map(|k| k * 50).collect();
+        let nonkeys: Vec<u32> = (0..n as u32).filter(|i| i % 50 != 0).collect();
+        let u: Vec<f32> = (0..t * n).map(|_| (0.55 + 0.45 * rng.next()) as f32).collect();
+        let rot = vec![DMat3::IDENTITY; t];
+        let ids: Vec<u32> = (0..n as u32).collect();
+        let t_hat: Vec<u32> = nonkeys.iter().map(|i| i % t as u32).collect();
+        let nonkey_edges: Vec<Vec<(u32, f32)>> = nonkeys
+            .iter()
+            .map(|i| (0..5).map(|j| (keys[(*i as usize / 50 + j) % nk], 0.2)).collect())
+            .collect();
+        for (profile, k) in [(Profile::Paper, 8), (Profile::Release, 120)] {
+            let key_edges: Vec<(u32, u32, f32)> = (0..nk)
+                .flat_map(|a| (1..=k).map(move |d| (a, (a + d) % nk)))
+                .map(|(a, b)| (keys[a], keys[b], 1.0))
+                .collect();
+            let inp = GraphInputs {
+                initial: &p0,
+                ids: &ids,
+                keys: &keys,
+                nonkeys: &nonkeys,
+                t_hat: &t_hat,
+                nonkey_edges: &nonkey_edges,
+                key_edges: &key_edges,
+                u: &u,
+                rot_cw: &rot,
+            };
+            let mut obj = GraphObjective::new(&inp, GraphSettings::defaults(profile)).unwrap();
+            let mut g = PoseGrads::zeros(t, n);
+            let frames = [3, 17, 30, 44, 58, 71, 90, 111];
+            let start = std::time::Instant::now();
+            let reps = 3;
+            for r in 0..reps {
+                g.clear();
+                obj.evaluate(&p0, &frames, r, &mut g);
+            }
+            let ms = start.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            let part = |f: &mut dyn FnMut()| {
+                let s = std::time::Instant::now();
+                f();
+                s.elapsed().as_secs_f64() * 1e3
+            };
+            let all: Vec<u32> = keys.iter().chain(&nonkeys).copied().collect();
+            let smooth = part(&mut || {
+                let tr = Track::gather(&p0, &all);
+                let mut tg = TrackGrad::zeros(&tr);
+                motion::velocity(&tr, obj.s.motion, 1.0, &mut tg);
+                motion::acceleration(&tr, obj.s.motion, 1.0, &mut tg);
+                tg.scatter(&tr, &all, &mut g);
+            });
+            let dqb_ms = part(&mut || {
+                obj.dqb_terms(&p0, &frames, &mut g);
+            });
+            let key_ms = part(&mut || {
+                obj.key_motion(&p0, 1, &mut g);
+            });
+            let anchor_ms = part(&mut || {
+                obj.anchor(&p0, &all, 1.0, &mut g);
+            });
+            eprintln!(
+                "  smoothness {smooth:.0} ms, DQB {dqb_ms:.0} ms, key motion {key_ms:.0} ms, anchors {anchor_ms:.0} ms"
+            );
+            eprintln!(
+                "evaluate {profile:?} (key k = {k}): {ms:.0} ms, {} threads",
+                rayon::current_num_threads()
+            );
+        }
+    }
+
+    #[test]
+    fn learned_edges_are_normalised_per_source() {
+        let (obj, _) = case(GraphSettings::defaults(Profile::Release));
+        let (edges, rest) = obj.learned_edges();
+        assert_eq!(rest.len(), 6);
+        let kk: f32 = (0..edges.len())
+            .filter(|&e| edges.kind[e] == EdgeKind::KeyKey && edges.src[e] == 100)
+            .map(|e| edges.weight[e])
+            .sum();
+        assert!((kk - 1.0).abs() < 1e-6);
+        assert_eq!(edges.len(), 6 + 6);
+    }
+}

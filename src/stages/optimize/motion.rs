@@ -611,7 +611,7 @@ pub fn knn_edges(positions: &[[f32; 3]], k: usize) -> (Vec<u32>, Vec<u32>, Vec<f
         .enumerate()
         .map(|(i, q)| {
             let res = tree.query(q).nearest_n::<SquaredEuclidean<f32>>(kk).execute();
-            res.iter().map(|r| r.item as u32).filter(|&j| j as usize != i).take(k).collect()
+            res.iter().map(|r| r.item).filter(|&j| j as usize != i).take(k).collect()
         })
         .collect();
     for (i, list) in lists.iter().enumerate() {
