@@ -210,3 +210,120 @@ fn usplat4d_recipe_writes_a_model_its_roles_and_the_learned_graph() {
     let a: Vec<&str> = args.iter().map(String::as_str).collect();
     dir.ok(&a);
 }
+
+/// Distance to the oracle of each (Gaussian, frame) pair of `pairs`, by id (`None` when the
+/// model no longer has that Gaussian, e.g. culled by the release's key-node selection).
+fn drift_errors(
+    model: &Path,
+    oracle: &[Vec<[f32; 3]>],
+    ids: &[u32],
+    pairs: &[(usize, usize)],
+) -> Vec<Option<f64>> {
+    let m = Model::load(model).unwrap();
+    let at: std::collections::HashMap<u32, usize> =
+        m.gaussians.id.iter().enumerate().map(|(r, &i)| (i, r)).collect();
+    let frames: Vec<_> = (0..m.num_frames()).map(|t| m.frame(t).unwrap().position).collect();
+    pairs
+        .iter()
+        .map(|&(i, t)| {
+            let p = frames[t][*at.get(&ids[i])?];
+            Some((0..3).map(|k| ((p[k] - oracle[t][i][k]) as f64).powi(2)).sum::<f64>().sqrt())
+        })
+        .collect()
+}
+
+/// Means of each run's errors over the pairs every run still has.
+fn common_means(runs: &[Vec<Option<f64>>]) -> (usize, Vec<f64>) {
+    let keep: Vec<usize> =
+        (0..runs[0].len()).filter(|&k| runs.iter().all(|r| r[k].is_some())).collect();
+    let mean = |r: &Vec<Option<f64>>| {
+        keep.iter().map(|&k| r[k].unwrap_or(0.0)).sum::<f64>() / keep.len().max(1) as f64
+    };
+    (keep.len(), runs.iter().map(mean).collect())
+}
+
+/// The recovery test of issue 11: a prior whose trajectories drift in the frames where points
+/// are not seen by the training camera (as `graph_fox` builds it). After the same number of
+/// steps, the usplat4d recipe leaves the drifted pairs closer to the ground truth than the
+/// vanilla recipe. Not validated here: far-view rendering quality (pipelines/fox.yaml).
+#[test]
+#[ignore = "issue 11's recovery criterion is not met yet: on this prior usplat4d (paper 0.098, \
+            release 0.121) stays behind vanilla (0.085); run with --ignored to measure"]
+fn usplat4d_brings_drifted_points_closer_than_vanilla() {
+    use usplat4d::stages::graph::Rng;
+    let dir = Dir::new();
+    let gltf = repo().join("pipelines/data/Fox.glb");
+    let args = ["synth", "--gltf", gltf.to_str().unwrap(), "--animation", "Walk", "--out", "S"];
+    let size = ["--frames", "12", "--width", "96", "--height", "96", "--gaussians", "1500"];
+    dir.ok(&[&args[..], &size[..]].concat());
+    dir.ok(&["uncertainty", "--model", "S/oracle", "--scene", "S", "--out", "U0"]);
+    let oracle = Model::load(&dir.join("S/oracle")).unwrap();
+    let u0 =
+        usplat4d::tables::uncertainty::UncertaintyReader::open(&dir.join("U0/uncertainty.parquet"))
+            .unwrap();
+    let nt = oracle.num_frames();
+    let seen: Vec<Vec<u32>> = (0..nt).map(|t| u0.frame(t).unwrap().n_pixels).collect();
+    let truth: Vec<Vec<[f32; 3]>> = (0..nt).map(|t| oracle.frame(t).unwrap().position).collect();
+    let n = oracle.gaussians.len();
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for p in &truth[0] {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let offset = 0.1 * (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f32>().sqrt();
+    let mut states: Vec<_> = (0..nt).map(|t| oracle.frame(t).unwrap()).collect();
+    let mut rng = Rng::new(5);
+    let mut pairs = Vec::new();
+    for i in (0..n).filter(|&i| oracle.gaussians.dynamic[i]) {
+        let (pick, d) = (rng.uniform() < 0.5, [rng.normal(), rng.normal(), rng.normal()]);
+        let unseen: Vec<usize> = (0..nt).filter(|&t| seen[t][i] == 0).collect();
+        if !pick || unseen.is_empty() {
+            continue;
+        }
+        let len = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
+        for &t in &unseen {
+            for k in 0..3 {
+                states[t].position[i][k] += (d[k] / len) as f32 * offset;
+            }
+            pairs.push((i, t));
+        }
+    }
+    Model::save(
+        &dir.join("drifted"),
+        &oracle.gaussians,
+        states.into_iter().map(Ok),
+        &Provenance::default(),
+    )
+    .unwrap();
+    let common = ["--model", "drifted", "--scene", "S", "--steps", "30", "--lr-position", "0.01"];
+    dir.ok(&[&["optimize", "--recipe", "vanilla", "--out", "V"][..], &common[..]].concat());
+    let ids = &oracle.gaussians.id;
+    let mut runs = vec![
+        drift_errors(&dir.join("drifted"), &truth, ids, &pairs),
+        drift_errors(&dir.join("V"), &truth, ids, &pairs),
+    ];
+    for profile in ["paper", "release"] {
+        graph_stages(&dir, "drifted", profile);
+        let out = format!("G_{profile}");
+        let mut a: Vec<String> =
+            ["optimize", "--out", &out].iter().chain(&common).map(|s| s.to_string()).collect();
+        a.extend(usplat4d_args(profile));
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        dir.ok(&a);
+        runs.push(drift_errors(&dir.join(&out), &truth, ids, &pairs));
+    }
+    let (kept, m) = common_means(&runs);
+    let (prior, vanilla, ours) = (m[0], m[1], [m[2], m[3]]);
+    println!(
+        "recovery on {kept} of {} drifted pairs (offset {offset:.3}): mean error prior \
+         {prior:.4}, vanilla {vanilla:.4}, usplat4d paper {:.4}, release {:.4}",
+        pairs.len(),
+        ours[0],
+        ours[1]
+    );
+    let pairs: Vec<_> = pairs.iter().take(kept).collect();
+    assert!(pairs.len() >= 50, "only {} drifted pairs", pairs.len());
+    assert!(ours[1] < vanilla, "usplat4d (release) {:.4} vs vanilla {vanilla:.4}", ours[1]);
+}
