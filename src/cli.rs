@@ -81,6 +81,8 @@ pub enum BenchCommand {
     Metrics(crate::metrics::bench::BenchMetricsParams),
     /// Per-frame timings of the uncertainty stage's render and convergence test.
     Uncertainty(crate::stages::bench_uncertainty::BenchUncertaintyParams),
+    /// Milliseconds per optimisation step and peak memory of `optimize`.
+    Optimize(crate::stages::optimize::bench::BenchOptimizeParams),
 }
 
 impl Command {
@@ -126,6 +128,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Graph(p)) => stages::bench_graph::run(&p, ctx),
         Command::Bench(BenchCommand::Metrics(p)) => metrics::bench::run(&p, ctx),
         Command::Bench(BenchCommand::Uncertainty(p)) => stages::bench_uncertainty::run(&p, ctx),
+        Command::Bench(BenchCommand::Optimize(p)) => stages::optimize::bench::run(&p, ctx),
         Command::Pipeline(c) => pipeline::run_command(&c, ctx),
         Command::Inspect(p) => tables::inspect::run(&p, ctx),
         Command::Check(p) => tables::check::run(&p, ctx),

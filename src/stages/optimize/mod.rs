@@ -5,6 +5,7 @@
 //! paper and release values; [`train`] is the loop.
 
 pub mod adam;
+pub mod bench;
 pub mod checkpoint;
 pub mod density;
 pub mod graph_loss;
