@@ -14,8 +14,8 @@
 //! `s = (2μxμy + c1)(2σxy + c2) / ((μx² + μy² + c1)(σxx + σyy + c2))` and S = mean_q s. Then
 //! `dS/dx_p = Σ_q g(p − q)·[A(q) + 2x_p·B(q) + y_p·C(q)] / |map|` with B = ∂s/∂σxx,
 //! C = ∂s/∂σxy, A = ∂s/∂μx − 2μx·B − μy·C (zero off the map): three more blurs with the same
-//! (symmetric) window. Each blur is separable, O(H·W·11); a channel costs 8 blurs and a few
-//! `[H, W]` f64 planes, nothing quadratic.
+//! (symmetric) window. Each blur is separable, O(H·W·11); a channel costs 8 blurs and about
+//! 14 `[H, W]` f64 planes, nothing quadratic.
 //!
 //! Threading: every pass runs rayon over rows; each value is computed by one task with its
 //! taps summed in a fixed order and row sums are added in row order, so the results are
@@ -121,6 +121,11 @@ fn is_map_row(y: usize, h: usize, padding: SsimPadding) -> bool {
 
 /// One channel, planes `[H, W]`: the sum of its SSIM map and, when `want_grad`, the
 /// gradient of that sum w.r.t. `x` (`[H, W]`).
+///
+/// Forward: a horizontal pass of the five signals into row-interleaved planes `[H, 5, W]`,
+/// then per map row one vertical pass over the whole `[5, W]` block, the map values and
+/// the coefficients A, B, C (`[H, 3, W]`, 0 off the map). Backward: the same two passes
+/// over `[H, 3, W]`, the vertical one fused with `A + 2x·B + y·C`.
 fn channel(
     x: &[f64],
     y: &[f64],
@@ -130,31 +135,37 @@ fn channel(
     f: &[f64; WINDOW],
     want_grad: bool,
 ) -> (f64, Option<Vec<f64>>) {
-    let prod = |a: &[f64], b: &[f64]| -> Vec<f64> {
-        a.par_iter().zip(b.par_iter()).map(|(p, q)| p * q).collect()
-    };
-    let stats = [
-        blur(x, w, h, f),
-        blur(y, w, h, f),
-        blur(&prod(x, x), w, h, f),
-        blur(&prod(y, y), w, h, f),
-        blur(&prod(x, y), w, h, f),
-    ];
+    const S: usize = 5;
+    let mut hor = vec![0.0; S * w * h];
+    hor.par_chunks_mut(S * w).enumerate().for_each(|(yy, out)| {
+        let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
+        let mut prod = vec![0.0; w];
+        let mut signal = |k: usize, src: &[f64]| blur_row(src, &mut out[k * w..(k + 1) * w], f);
+        signal(0, xr);
+        signal(1, yr);
+        for (i, p) in [(2, (xr, xr)), (3, (yr, yr)), (4, (xr, yr))] {
+            for ((o, a), b) in prod.iter_mut().zip(p.0).zip(p.1) {
+                *o = a * b;
+            }
+            signal(i, &prod);
+        }
+    });
     let cols = map_cols(w, padding);
-    // Per row: the map's sum, and the coefficients A, B, C `[3, W]` (0 off the map).
+    // Per map row: the map's sum, and A, B, C into `coef` rows `[3, W]`.
     let mut coef = if want_grad { vec![0.0; 3 * w * h] } else { Vec::new() };
     let per_row = |(yy, out): (usize, &mut [f64])| -> f64 {
         if !is_map_row(yy, h, padding) {
             return 0.0;
         }
+        let mut v = vec![0.0; S * w];
+        blur_column(&hor, S * w, h, yy, f, &mut v);
         let mut sum = 0.0;
         for xx in cols.clone() {
-            let i = yy * w + xx;
-            let (s, abc) = ssim_terms(stats.each_ref().map(|p| p[i]));
+            let (s, abc) = ssim_terms(std::array::from_fn(|k| v[k * w + xx]));
             sum += s;
             if !out.is_empty() {
-                for (k, v) in abc.into_iter().enumerate() {
-                    out[k * w + xx] = v;
+                for (k, c) in abc.into_iter().enumerate() {
+                    out[k * w + xx] = c;
                 }
             }
         }
@@ -169,13 +180,21 @@ fn channel(
     if !want_grad {
         return (total, None);
     }
-    // Split the row-interleaved [H, 3, W] coefficients into three planes and blur them.
-    let plane = |k: usize| -> Vec<f64> {
-        coef.par_chunks(3 * w).flat_map_iter(|r| r[k * w..(k + 1) * w].iter().copied()).collect()
-    };
-    let [ba, bb, bc] = [0, 1, 2].map(|k| blur(&plane(k), w, h, f));
-    let grad =
-        (0..w * h).into_par_iter().map(|i| ba[i] + 2.0 * x[i] * bb[i] + y[i] * bc[i]).collect();
+    let mut hor3 = vec![0.0; 3 * w * h];
+    hor3.par_chunks_mut(3 * w).zip(coef.par_chunks(3 * w)).for_each(|(o, c)| {
+        for k in 0..3 {
+            blur_row(&c[k * w..(k + 1) * w], &mut o[k * w..(k + 1) * w], f);
+        }
+    });
+    let mut grad = vec![0.0; w * h];
+    grad.par_chunks_mut(w).enumerate().for_each(|(yy, g)| {
+        let mut v = vec![0.0; 3 * w];
+        blur_column(&hor3, 3 * w, h, yy, f, &mut v);
+        let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
+        for i in 0..w {
+            g[i] = v[i] + 2.0 * xr[i] * v[w + i] + yr[i] * v[2 * w + i];
+        }
+    });
     (total, Some(grad))
 }
 
@@ -190,46 +209,45 @@ fn ssim_terms(s: [f64; 5]) -> (f64, [f64; 3]) {
     let sxy = exy - mx * my;
     let (n1, n2) = (2.0 * mx * my + c1, 2.0 * sxy + c2);
     let (d1, d2) = (mx * mx + my * my + c1, sxx + syy + c2);
+    // One division: 1/d1 = d2·inv and 1/d2 = d1·inv.
     let inv = 1.0 / (d1 * d2);
     let v = n1 * n2 * inv;
-    let b = -v / d2;
+    let b = -v * d1 * inv;
     let c = 2.0 * n1 * inv;
-    let ds_dmx = 2.0 * my * n2 * inv - 2.0 * mx * v / d1;
+    let ds_dmx = 2.0 * (my * n2 - mx * v * d2) * inv;
     (v, [ds_dmx - 2.0 * mx * b - my * c, b, c])
 }
 
-/// Separable Gaussian blur of a plane `[H, W]` with zeros outside the image, evaluated at
-/// every pixel (horizontal pass, then vertical). Every output adds its taps in order
-/// k = 0..10 from 0.
-fn blur(src: &[f64], w: usize, h: usize, f: &[f64; WINDOW]) -> Vec<f64> {
-    let mut tmp = vec![0.0; w * h];
-    tmp.par_chunks_mut(w).zip(src.par_chunks(w)).for_each(|(o, s)| {
-        for (k, fk) in f.iter().enumerate() {
-            // o[x] += f[k]·s[x + k − 5] where 0 ≤ x + k − 5 < w.
-            let lo = HALF.saturating_sub(k);
-            let hi = (w + HALF).saturating_sub(k).min(w);
-            if lo < hi {
-                let off = lo + k - HALF;
-                for (a, v) in o[lo..hi].iter_mut().zip(&s[off..off + hi - lo]) {
-                    *a += fk * v;
-                }
-            }
-        }
-    });
-    let mut out = vec![0.0; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(yy, o)| {
-        for (k, fk) in f.iter().enumerate() {
-            let r = yy + k;
-            if r < HALF || r - HALF >= h {
-                continue;
-            }
-            let row = &tmp[(r - HALF) * w..(r - HALF + 1) * w];
-            for (a, v) in o.iter_mut().zip(row) {
+/// Horizontal pass of one row with zeros outside: `o[x] += Σ_k f[k]·s[x + k − 5]`, taps
+/// added in order k = 0..10 (`o` starts at 0).
+fn blur_row(s: &[f64], o: &mut [f64], f: &[f64; WINDOW]) {
+    let w = s.len();
+    for (k, fk) in f.iter().enumerate() {
+        // Outputs x with 0 ≤ x + k − 5 < w.
+        let lo = HALF.saturating_sub(k);
+        let hi = (w + HALF).saturating_sub(k).min(w);
+        if lo < hi {
+            let off = lo + k - HALF;
+            for (a, v) in o[lo..hi].iter_mut().zip(&s[off..off + hi - lo]) {
                 *a += fk * v;
             }
         }
-    });
-    out
+    }
+}
+
+/// Vertical pass at row `yy` of planes stored as rows of `len` values (`[H, len]`) with
+/// zeros outside: `out += Σ_k f[k]·rows[yy + k − 5]`, taps in order k = 0..10.
+fn blur_column(rows: &[f64], len: usize, h: usize, yy: usize, f: &[f64; WINDOW], out: &mut [f64]) {
+    for (k, fk) in f.iter().enumerate() {
+        let r = yy + k;
+        if r < HALF || r - HALF >= h {
+            continue;
+        }
+        let row = &rows[(r - HALF) * len..(r - HALF + 1) * len];
+        for (a, v) in out.iter_mut().zip(row) {
+            *a += fk * v;
+        }
+    }
 }
 
 #[cfg(test)]

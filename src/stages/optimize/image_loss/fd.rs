@@ -37,7 +37,7 @@ impl Check {
         let err = (analytic - fd).abs();
         self.max_err = self.max_err.max(err);
         self.count += 1;
-        if !(err <= self.abs + self.rel * fd.abs()) {
+        if err.is_nan() || err > self.abs + self.rel * fd.abs() {
             self.failures.push(format!("{case}: analytic {analytic:.9e}, fd {fd:.9e}"));
         }
     }

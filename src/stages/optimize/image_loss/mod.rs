@@ -143,6 +143,9 @@ pub struct FrameTargets<'a> {
 /// Names of the terms [`rgb_loss`] may return, in order.
 pub const TERMS: [&str; 4] = ["rgb", "mask", "depth", "track"];
 
+/// Named loss terms, each already multiplied by its weight.
+pub type Terms = Vec<(&'static str, f64)>;
+
 /// L_rgb of one rendered frame `out` against `truth`: the terms used (each already
 /// multiplied by its weight, so that they sum to the loss; names from [`TERMS`]) and the
 /// cotangent of that sum w.r.t. the render's images. Unused images get empty cotangents.
@@ -151,7 +154,7 @@ pub fn rgb_loss(
     out: &RenderOutput,
     truth: &FrameTargets,
     weights: &ImageLossWeights,
-) -> Result<(Vec<(&'static str, f64)>, ImageGrads), Error> {
+) -> Result<(Terms, ImageGrads), Error> {
     let (w, h) = (out.width, out.height);
     let n = w * h;
     let check = |name: &'static str, got: usize, expected: usize| {
@@ -206,7 +209,7 @@ pub fn rgb_loss(
         terms.push(("depth", weights.depth * l));
     }
     if !truth.tracks.is_empty() && weights.track > 0.0 {
-        let f = if n == 0 { 0 } else { out.features.len() / n };
+        let f = out.features.len().checked_div(n).unwrap_or(0);
         check("rendered features", out.features.len(), n * f)?;
         if let Some(s) = truth.tracks.iter().find(|s| 3 * s.block + 3 > f) {
             return Err(Error::FeatureBlock { block: s.block, need: 3 * s.block + 3, have: f });
