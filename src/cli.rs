@@ -83,6 +83,8 @@ pub enum Command {
     Keynodes(crate::stages::keynodes::KeynodeParams),
     /// Uncertainty-aware graph edges (paper Sec. 4.2, Eqs. 7-8).
     Edges(crate::stages::edges::EdgeParams),
+    /// Uncertainty-aware optimisation: the vanilla and USplat4D recipes (paper Sec. 4.3).
+    Optimize(Box<crate::stages::optimize::OptimizeParams>),
     /// Motion segments by spectral clustering of the key graph.
     Segment(crate::stages::segment::SegmentParams),
     /// Image and tracking metrics of renders against a scene.
@@ -125,6 +127,8 @@ pub enum BenchCommand {
     Metrics(crate::tools::bench::metrics::BenchMetricsParams),
     /// Per-frame timings of the uncertainty stage's render and convergence test.
     Uncertainty(crate::tools::bench::uncertainty::BenchUncertaintyParams),
+    /// Milliseconds per optimisation step and peak memory of `optimize`.
+    Optimize(crate::tools::bench::optimize::BenchOptimizeParams),
 }
 
 impl Command {
@@ -137,6 +141,7 @@ impl Command {
             Command::Uncertainty(_) => "uncertainty",
             Command::Keynodes(_) => "keynodes",
             Command::Edges(_) => "edges",
+            Command::Optimize(_) => "optimize",
             Command::Segment(_) => "segment",
             Command::Evaluate(_) => "evaluate",
             Command::Report(_) => "report",
@@ -163,6 +168,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Uncertainty(p) => stages::uncertainty::run(&p, ctx),
         Command::Keynodes(p) => stages::keynodes::run(&p, ctx),
         Command::Edges(p) => stages::edges::run(&p, ctx),
+        Command::Optimize(p) => stages::optimize::run(&p, ctx),
         Command::Segment(p) => stages::segment::run(&p, ctx),
         Command::Evaluate(p) => stages::evaluate::run(&p, ctx),
         Command::Report(p) => stages::report::run(&p, ctx),
@@ -172,6 +178,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Graph(p)) => tools::bench::graph::run(&p, ctx),
         Command::Bench(BenchCommand::Metrics(p)) => tools::bench::metrics::run(&p, ctx),
         Command::Bench(BenchCommand::Uncertainty(p)) => tools::bench::uncertainty::run(&p, ctx),
+        Command::Bench(BenchCommand::Optimize(p)) => tools::bench::optimize::run(&p, ctx),
         Command::Pipeline(c) => pipeline::run_command(&c, &mut InProcess { ctx: ctx.clone() }, ctx),
         Command::Inspect(p) => tools::inspect::run(&p, ctx),
         Command::Check(p) => tools::check::run(&p, ctx),

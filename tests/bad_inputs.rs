@@ -81,7 +81,7 @@ fn corrupted_parquet_exits_2_naming_the_file() {
     };
     let work = Dir::new();
     let (scene, model) =
-        usplat4d::render::synthetic::write_demo_scene(&work.join("valid"), 2).unwrap();
+        usplat4d::datasets::demo::write_demo_scene(&work.join("valid"), 2).unwrap();
     let (scene, model) = (scene.to_str().unwrap().to_string(), model.to_str().unwrap().to_string());
     let mut files: Vec<_> = std::fs::read_dir(&dir)
         .unwrap()

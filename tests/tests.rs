@@ -11,6 +11,7 @@ mod graph_fox;
 mod inspect;
 mod interop;
 mod layout;
+mod optimize;
 mod pipeline;
 mod render;
 mod report;

@@ -14,6 +14,7 @@ mod dycheck_fixture;
 pub mod lpips;
 pub mod psnr;
 pub mod ssim;
+pub mod ssim_grad;
 pub mod tracking;
 
 use crate::formats::png::Image;

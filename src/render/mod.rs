@@ -261,6 +261,9 @@ pub struct SplatGrads {
     pub sh_rest: Vec<f32>,
     /// dL/d features `[N, F]`.
     pub features: Vec<f32>,
+    /// dL/d projected 2D means `[N]`, pixels (the screen-space position gradient that
+    /// density control accumulates; part of `means`' chain, not an extra input).
+    pub means2d: Vec<[f32; 2]>,
 }
 
 /// A renderer with gradients (the optimiser's interface). `Saved` is the forward state the

@@ -5,6 +5,7 @@ pub mod edges;
 pub mod evaluate;
 pub mod graph;
 pub mod keynodes;
+pub mod optimize;
 pub mod params;
 pub mod render;
 pub mod report;

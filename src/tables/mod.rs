@@ -17,6 +17,7 @@ pub mod metrics;
 pub mod segments;
 pub mod tracks_2d;
 pub mod tracks_3d;
+pub mod training_log;
 pub mod trajectories;
 pub mod uncertainty;
 pub mod validate;
@@ -139,5 +140,6 @@ pub fn registry() -> Vec<TableKind> {
         entry::<edges::EdgesTable>(),
         entry::<segments::SegmentsTable>(),
         entry::<benchmark::BenchmarkTable>(),
+        entry::<training_log::TrainingLogTable>(),
     ]
 }

@@ -482,6 +482,7 @@ fn project_backward(
         colors: Vec::with_capacity(n),
         sh_rest: Vec::with_capacity(n * k3),
         features: Vec::with_capacity(n * nf),
+        means2d: Vec::with_capacity(n),
     };
     for (i, o) in per.into_iter().enumerate() {
         out.means.push(o.mean);
@@ -491,6 +492,7 @@ fn project_backward(
         out.colors.push(o.color);
         out.sh_rest.extend_from_slice(&o.rest);
         out.features.extend_from_slice(&v_ch[i * nc + 4..(i + 1) * nc]);
+        out.means2d.push(if saved.splats[i].valid { v2d[i].mean2d } else { [0.0; 2] });
     }
     out
 }

@@ -3,5 +3,6 @@
 
 pub mod graph;
 pub mod metrics;
+pub mod optimize;
 pub mod render;
 pub mod uncertainty;

@@ -1,0 +1,432 @@
+//! SSIM as a training loss, with its exact backward (the photometric term L_rgb of the base
+//! models, paper Appendix A.3): the 11-tap Gaussian window of [`super::ssim`] (σ 1.5),
+//! c1 = 0.01², c2 = 0.03², no clipping of the (co)variances, the mean over the map and the
+//! channels. Training needs no mask here: MoSca masks by multiplying both images first, which
+//! the caller does (and chains).
+//!
+//! Borders ([`SsimPadding`]): `Same` zero-pads the image by 5 pixels, so the map is H×W
+//! (3DGS's and MoSca's `ssim`, the release's L_rgb); `Valid` keeps only windows inside the
+//! image, an (H − 10)×(W − 10) map (Shape of Motion's `pytorch_msssim.SSIM`; equal to the
+//! unmasked metric [`super::ssim::ssim`]).
+//!
+//! Backward. Per map pixel q the statistics are Gaussian blurs μx, μy, E[x²], E[y²], E[xy];
+//! with σxx = E[x²] − μx² (likewise σyy, σxy) the map is
+//! `s = (2μxμy + c1)(2σxy + c2) / ((μx² + μy² + c1)(σxx + σyy + c2))` and S = mean_q s. Then
+//! `dS/dx_p = Σ_q g(p − q)·[A(q) + 2x_p·B(q) + y_p·C(q)] / |map|` with B = ∂s/∂σxx,
+//! C = ∂s/∂σxy, A = ∂s/∂μx − 2μx·B − μy·C (zero off the map): three more blurs with the same
+//! (symmetric) window. Each blur is separable, O(H·W·11); a channel costs 8 blurs and about
+//! 14 `[H, W]` f64 planes, nothing quadratic.
+//!
+//! Threading: every pass runs rayon over rows; each value is computed by one task with its
+//! taps summed in a fixed order and row sums are added in row order, so the results are
+//! bit-identical whatever the thread count.
+
+use rayon::prelude::*;
+
+use super::ssim::{K1, K2, WINDOW, window};
+use super::{Error, Result};
+
+/// Half the window width (5): the zero padding of [`SsimPadding::Same`].
+const HALF: usize = WINDOW / 2;
+
+/// Which windows make up the SSIM map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SsimPadding {
+    /// One window per pixel, zero outside the image: an H×W map (3DGS, MoSca, the release).
+    #[default]
+    Same,
+    /// Only windows inside the image: an (H − 10)×(W − 10) map (Shape of Motion).
+    Valid,
+}
+
+/// Mean SSIM of `x` against the fixed reference `y`, both `[H, W, C]` interleaved with
+/// values in [0, 1]. With `grad = Some((g, scale))` it adds `scale · dSSIM/dx` to `g`
+/// (`[H, W, C]`). `Valid` needs at least 11×11 pixels.
+pub fn ssim_with_grad(
+    x: &[f32],
+    y: &[f32],
+    w: usize,
+    h: usize,
+    channels: usize,
+    padding: SsimPadding,
+    grad: Option<(&mut [f32], f64)>,
+) -> Result<f64> {
+    let n = w * h * channels;
+    if x.len() != n || y.len() != n {
+        return Err(Error::Size {
+            what: "training ssim",
+            a: format!("{} values", x.len()),
+            b: format!("{} values ({w}x{h}x{channels} expected)", y.len()),
+        });
+    }
+    let map = map_size(w, h, padding).ok_or(Error::TooSmall {
+        what: "training ssim (valid)",
+        w,
+        h,
+        min: WINDOW,
+    })?;
+    let f = window();
+    let want = grad.is_some();
+    let mut total = 0.0;
+    let mut grads = Vec::with_capacity(if want { channels } else { 0 });
+    for c in 0..channels {
+        let plane = |img: &[f32]| -> Vec<f64> {
+            img.par_chunks(w * channels)
+                .flat_map_iter(|row| row.chunks_exact(channels).map(move |p| p[c] as f64))
+                .collect()
+        };
+        let (sum, g) = channel(&plane(x), &plane(y), w, h, padding, &f, want);
+        total += sum;
+        grads.extend(g);
+    }
+    let norm = 1.0 / (map * channels) as f64;
+    if let Some((out, scale)) = grad {
+        assert_eq!(out.len(), n, "gradient buffer is [H, W, C]");
+        let k = scale * norm;
+        out.par_chunks_mut(w * channels).enumerate().for_each(|(row, o)| {
+            for (c, g) in grads.iter().enumerate() {
+                let g = &g[row * w..(row + 1) * w];
+                for (px, v) in o.chunks_exact_mut(channels).zip(g) {
+                    px[c] += (k * v) as f32;
+                }
+            }
+        });
+    }
+    Ok(total * norm)
+}
+
+/// Number of map pixels, or `None` when a `Valid` map would be empty.
+fn map_size(w: usize, h: usize, padding: SsimPadding) -> Option<usize> {
+    match padding {
+        SsimPadding::Same => Some(w * h),
+        SsimPadding::Valid if w >= WINDOW && h >= WINDOW => {
+            Some((w - WINDOW + 1) * (h - WINDOW + 1))
+        }
+        SsimPadding::Valid => None,
+    }
+}
+
+/// The map's column range in every map row, and whether image row `y` is a map row.
+fn map_cols(w: usize, padding: SsimPadding) -> std::ops::Range<usize> {
+    match padding {
+        SsimPadding::Same => 0..w,
+        SsimPadding::Valid => HALF..w - HALF,
+    }
+}
+
+fn is_map_row(y: usize, h: usize, padding: SsimPadding) -> bool {
+    padding == SsimPadding::Same || (HALF..h - HALF).contains(&y)
+}
+
+/// One channel, planes `[H, W]`: the sum of its SSIM map and, when `want_grad`, the
+/// gradient of that sum w.r.t. `x` (`[H, W]`).
+///
+/// Forward: a horizontal pass of the five signals into row-interleaved planes `[H, 5, W]`,
+/// then per map row one vertical pass over the whole `[5, W]` block, the map values and
+/// the coefficients A, B, C (`[H, 3, W]`, 0 off the map). Backward: the same two passes
+/// over `[H, 3, W]`, the vertical one fused with `A + 2x·B + y·C`.
+fn channel(
+    x: &[f64],
+    y: &[f64],
+    w: usize,
+    h: usize,
+    padding: SsimPadding,
+    f: &[f64; WINDOW],
+    want_grad: bool,
+) -> (f64, Option<Vec<f64>>) {
+    const S: usize = 5;
+    let mut hor = vec![0.0; S * w * h];
+    hor.par_chunks_mut(S * w).enumerate().for_each(|(yy, out)| {
+        let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
+        let mut prod = vec![0.0; w];
+        let mut signal = |k: usize, src: &[f64]| blur_row(src, &mut out[k * w..(k + 1) * w], f);
+        signal(0, xr);
+        signal(1, yr);
+        for (i, p) in [(2, (xr, xr)), (3, (yr, yr)), (4, (xr, yr))] {
+            for ((o, a), b) in prod.iter_mut().zip(p.0).zip(p.1) {
+                *o = a * b;
+            }
+            signal(i, &prod);
+        }
+    });
+    let cols = map_cols(w, padding);
+    // Per map row: the map's sum, and A, B, C into `coef` rows `[3, W]`.
+    let mut coef = if want_grad { vec![0.0; 3 * w * h] } else { Vec::new() };
+    let per_row = |(yy, out): (usize, &mut [f64])| -> f64 {
+        if !is_map_row(yy, h, padding) {
+            return 0.0;
+        }
+        let mut v = vec![0.0; S * w];
+        blur_column(&hor, S * w, h, yy, f, &mut v);
+        let mut sum = 0.0;
+        for xx in cols.clone() {
+            let (s, abc) = ssim_terms(std::array::from_fn(|k| v[k * w + xx]));
+            sum += s;
+            if !out.is_empty() {
+                for (k, c) in abc.into_iter().enumerate() {
+                    out[k * w + xx] = c;
+                }
+            }
+        }
+        sum
+    };
+    let row_sums: Vec<f64> = if want_grad {
+        coef.par_chunks_mut(3 * w).enumerate().map(per_row).collect()
+    } else {
+        (0..h).into_par_iter().map(|yy| per_row((yy, &mut []))).collect()
+    };
+    let total = row_sums.iter().sum();
+    if !want_grad {
+        return (total, None);
+    }
+    let mut hor3 = vec![0.0; 3 * w * h];
+    hor3.par_chunks_mut(3 * w).zip(coef.par_chunks(3 * w)).for_each(|(o, c)| {
+        for k in 0..3 {
+            blur_row(&c[k * w..(k + 1) * w], &mut o[k * w..(k + 1) * w], f);
+        }
+    });
+    let mut grad = vec![0.0; w * h];
+    grad.par_chunks_mut(w).enumerate().for_each(|(yy, g)| {
+        let mut v = vec![0.0; 3 * w];
+        blur_column(&hor3, 3 * w, h, yy, f, &mut v);
+        let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
+        for i in 0..w {
+            g[i] = v[i] + 2.0 * xr[i] * v[w + i] + yr[i] * v[2 * w + i];
+        }
+    });
+    (total, Some(grad))
+}
+
+/// The SSIM map value of one pixel from `[μx, μy, E(x²), E(y²), E(xy)]`, and its
+/// coefficients `[A, B, C]` (module doc), written without dividing by the numerator
+/// factors so that a zero numerator is harmless.
+fn ssim_terms(s: [f64; 5]) -> (f64, [f64; 3]) {
+    let (c1, c2) = (K1 * K1, K2 * K2);
+    let [mx, my, exx, eyy, exy] = s;
+    let sxx = exx - mx * mx;
+    let syy = eyy - my * my;
+    let sxy = exy - mx * my;
+    let (n1, n2) = (2.0 * mx * my + c1, 2.0 * sxy + c2);
+    let (d1, d2) = (mx * mx + my * my + c1, sxx + syy + c2);
+    // One division: 1/d1 = d2·inv and 1/d2 = d1·inv.
+    let inv = 1.0 / (d1 * d2);
+    let v = n1 * n2 * inv;
+    let b = -v * d1 * inv;
+    let c = 2.0 * n1 * inv;
+    let ds_dmx = 2.0 * (my * n2 - mx * v * d2) * inv;
+    (v, [ds_dmx - 2.0 * mx * b - my * c, b, c])
+}
+
+/// Horizontal pass of one row with zeros outside: `o[x] += Σ_k f[k]·s[x + k − 5]`, taps
+/// added in order k = 0..10 (`o` starts at 0).
+fn blur_row(s: &[f64], o: &mut [f64], f: &[f64; WINDOW]) {
+    let w = s.len();
+    for (k, fk) in f.iter().enumerate() {
+        // Outputs x with 0 ≤ x + k − 5 < w.
+        let lo = HALF.saturating_sub(k);
+        let hi = (w + HALF).saturating_sub(k).min(w);
+        if lo < hi {
+            let off = lo + k - HALF;
+            for (a, v) in o[lo..hi].iter_mut().zip(&s[off..off + hi - lo]) {
+                *a += fk * v;
+            }
+        }
+    }
+}
+
+/// Vertical pass at row `yy` of planes stored as rows of `len` values (`[H, len]`) with
+/// zeros outside: `out += Σ_k f[k]·rows[yy + k − 5]`, taps in order k = 0..10.
+fn blur_column(rows: &[f64], len: usize, h: usize, yy: usize, f: &[f64; WINDOW], out: &mut [f64]) {
+    for (k, fk) in f.iter().enumerate() {
+        let r = yy + k;
+        if r < HALF || r - HALF >= h {
+            continue;
+        }
+        let row = &rows[(r - HALF) * len..(r - HALF + 1) * len];
+        for (a, v) in out.iter_mut().zip(row) {
+            *a += fk * v;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formats::png::Image;
+
+    /// Deterministic values in [0, 1) quantised to 1/4096 (splitmix64), so that a finite
+    /// difference step of 1/1024 is exact in f32.
+    fn noise(n: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed;
+        (0..n)
+            .map(|_| {
+                s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+                let mut z = s;
+                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+                ((z ^ (z >> 31)) >> 52) as f32 / 4096.0
+            })
+            .collect()
+    }
+
+    /// Direct 2-D windowed SSIM with zero padding (`Same`) or valid windows, independent of
+    /// the separable code.
+    fn naive(x: &[f32], y: &[f32], w: usize, h: usize, ch: usize, padding: SsimPadding) -> f64 {
+        let f = window();
+        let at = |img: &[f32], xx: isize, yy: isize, c: usize| -> f64 {
+            if xx < 0 || yy < 0 || xx >= w as isize || yy >= h as isize {
+                0.0
+            } else {
+                img[(yy as usize * w + xx as usize) * ch + c] as f64
+            }
+        };
+        let (mut total, mut count) = (0.0, 0usize);
+        for c in 0..ch {
+            for yy in 0..h {
+                for xx in 0..w {
+                    let inside = (HALF..h - HALF).contains(&yy) && (HALF..w - HALF).contains(&xx);
+                    if padding == SsimPadding::Valid && !inside {
+                        continue;
+                    }
+                    let mut m = [0.0f64; 5];
+                    for i in 0..WINDOW {
+                        for j in 0..WINDOW {
+                            let (px, py) =
+                                (xx as isize + j as isize - 5, yy as isize + i as isize - 5);
+                            let (p, q) = (at(x, px, py, c), at(y, px, py, c));
+                            let g = f[i] * f[j];
+                            for (acc, v) in m.iter_mut().zip([p, q, p * p, q * q, p * q]) {
+                                *acc += g * v;
+                            }
+                        }
+                    }
+                    total += ssim_terms(m).0;
+                    count += 1;
+                }
+            }
+        }
+        total / count as f64
+    }
+
+    #[test]
+    fn forward_matches_a_direct_implementation_and_the_metric() {
+        let (w, h) = (17, 13);
+        let x = noise(w * h * 3, 1);
+        let mut y = noise(w * h * 3, 2);
+        for (q, p) in y.iter_mut().zip(&x) {
+            *q = 0.6 * *p + 0.4 * *q;
+        }
+        for padding in [SsimPadding::Same, SsimPadding::Valid] {
+            let got = ssim_with_grad(&x, &y, w, h, 3, padding, None).unwrap();
+            let want = naive(&x, &y, w, h, 3, padding);
+            assert!((got - want).abs() < 1e-12, "{padding:?}: {got} vs {want}");
+        }
+        let img = |d: &[f32]| Image { width: w, height: h, channels: 3, data: d.to_vec() };
+        let metric = crate::metrics::ssim::ssim(&img(&x), &img(&y), None).unwrap();
+        let valid = ssim_with_grad(&x, &y, w, h, 3, SsimPadding::Valid, None).unwrap();
+        assert!((metric - valid).abs() < 1e-12, "{metric} vs {valid}");
+    }
+
+    /// Central differences in f64 on the planar core (the forward is f64 throughout).
+    #[test]
+    fn gradient_matches_finite_differences() {
+        let (w, h) = (14, 12);
+        let f = window();
+        let mut failures = Vec::new();
+        let mut max_err = 0.0f64;
+        for (seed, padding) in [(3, SsimPadding::Same), (5, SsimPadding::Valid)] {
+            let x: Vec<f64> = noise(w * h, seed).iter().map(|v| *v as f64).collect();
+            let y: Vec<f64> = noise(w * h, seed + 1)
+                .iter()
+                .zip(&x)
+                .map(|(q, p)| 0.5 * p + 0.5 * *q as f64)
+                .collect();
+            let (_, g) = channel(&x, &y, w, h, padding, &f, true);
+            let g = g.unwrap();
+            let eps = 1e-5;
+            // Every pixel: corners, borders and the interior.
+            for i in 0..w * h {
+                let mut xp = x.clone();
+                xp[i] += eps;
+                let mut xm = x.clone();
+                xm[i] -= eps;
+                let fd = (channel(&xp, &y, w, h, padding, &f, false).0
+                    - channel(&xm, &y, w, h, padding, &f, false).0)
+                    / (2.0 * eps);
+                let err = (fd - g[i]).abs();
+                max_err = max_err.max(err);
+                if err > 1e-7 + 1e-5 * fd.abs() {
+                    failures.push(format!("{padding:?} pixel {i}: analytic {} fd {fd}", g[i]));
+                }
+            }
+        }
+        eprintln!("ssim_grad FD: max abs error {max_err:.3e}");
+        assert!(failures.is_empty(), "{}", failures.join("\n"));
+    }
+
+    /// The public f32 entry point: scaled accumulation into `[H, W, C]`, checked by
+    /// central differences on 1/1024 steps (exact in f32 for inputs on the 1/4096 grid).
+    #[test]
+    fn interleaved_gradient_is_scaled_and_accumulated() {
+        let (w, h, ch) = (12, 11, 3);
+        let x = noise(w * h * ch, 7);
+        let y = noise(w * h * ch, 8);
+        let mut g = vec![1.0f32; w * h * ch];
+        ssim_with_grad(&x, &y, w, h, ch, SsimPadding::Same, Some((&mut g, -2.0))).unwrap();
+        let eps = 1.0 / 1024.0;
+        let mut failures = Vec::new();
+        for i in (0..w * h * ch).step_by(7) {
+            let mut xp = x.clone();
+            xp[i] += eps;
+            let mut xm = x.clone();
+            xm[i] -= eps;
+            let s = |v: &[f32]| ssim_with_grad(v, &y, w, h, ch, SsimPadding::Same, None).unwrap();
+            let fd = -2.0 * (s(&xp) - s(&xm)) / (2.0 * eps as f64);
+            let got = g[i] as f64 - 1.0;
+            if (fd - got).abs() > 1e-6 + 1e-3 * fd.abs() {
+                failures.push(format!("value {i}: analytic {got} fd {fd}"));
+            }
+        }
+        assert!(failures.is_empty(), "{}", failures.join("\n"));
+    }
+
+    #[test]
+    fn identical_images_give_one_and_zero_gradient() {
+        let (w, h) = (13, 12);
+        let x = noise(w * h * 3, 9);
+        let mut g = vec![0.0f32; w * h * 3];
+        let s = ssim_with_grad(&x, &x, w, h, 3, SsimPadding::Same, Some((&mut g, 1.0))).unwrap();
+        assert!((s - 1.0).abs() < 1e-12, "{s}");
+        assert!(g.iter().all(|v| v.abs() < 1e-9), "SSIM is maximal at x = y");
+    }
+
+    #[test]
+    fn deterministic_across_thread_counts() {
+        let (w, h) = (40, 31);
+        let x = noise(w * h * 3, 11);
+        let y = noise(w * h * 3, 12);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let mut g = vec![0.0f32; w * h * 3];
+                let s = ssim_with_grad(&x, &y, w, h, 3, SsimPadding::Same, Some((&mut g, 1.0)))
+                    .unwrap();
+                (s.to_bits(), g.iter().map(|v| v.to_bits()).collect::<Vec<_>>())
+            })
+        };
+        assert_eq!(run(1), run(4));
+    }
+
+    #[test]
+    fn bad_sizes_are_errors() {
+        let x = noise(10 * 10 * 3, 1);
+        let e = ssim_with_grad(&x, &x, 10, 10, 3, SsimPadding::Valid, None).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "training ssim (valid): image 10x10 is smaller than the metric's minimum 11x11"
+        );
+        assert!(ssim_with_grad(&x, &x[1..], 10, 10, 3, SsimPadding::Same, None).is_err());
+        assert!(ssim_with_grad(&x, &x, 10, 10, 3, SsimPadding::Same, None).is_ok());
+    }
+}

@@ -1,0 +1,981 @@
+//! The USplat4D graph losses (paper Sec. 4.3): L_key (Eq. 9) and L_non-key (Eq. 11), with the
+//! release's variants (official-release.md §5.1, §5.3) as named settings.
+//!
+//! - Anchors Σ_t Σ_i ‖p_{i,t} − p°_{i,t}‖ for keys (and non-keys) in the metric of
+//!   [`AnchorMetric`] built from u_{i,t} and the training camera of frame t (Eq. 6).
+//! - DQB term Σ_{t ∈ batch} Σ_{u ∈ non-keys} ‖p_{u,t} − p^DQB_{u,t}‖ (Eq. 10-11): DQB of the
+//!   non-key's keys' motions from its most reliable frame t̂_u to t ([`crate::math::dqb`]),
+//!   table weights (normalised per non-key), applied to a trainable source pose (release
+//!   `src_xyz_1`, `src_xyzw_1`, initialised from p°_{u,t̂}); gradients reach the key
+//!   trajectories at t and t̂. The release adds ‖q^DQB − q_{u,t}‖ on unit quaternions.
+//! - Key motion losses over key-key edges ([`super::motion`]): the paper's iso + rigid +
+//!   0.01·rot (Δ = 1, normalised by 1/E, summed over frames), or the release's L_rigid_extra
+//!   (edges with w > 1e-4, a seeded 80 % kept per step; rigid + rot + 100·iso + 100·rigid_Δ50 +
+//!   100·rigid_Δ10, means). Key-key weights are learned as the release does:
+//!   w_ij = |W_ij| / Σ_j |W_ij| (W initialised to the table's weights), with trainable rest
+//!   lengths D_ij (initialised to mean_t ‖p°_i − p°_j‖) in the release form; the paper form
+//!   keeps D_ij = ‖p°_j − p°_i‖ at the canonical frame fixed.
+//! - Velocity and acceleration over keys and non-keys ([`MotionForm`]).
+//!
+//! Memory: O(T·(keys + non-keys)) plus O(T·keys) dual quaternions; nothing of size
+//! keys × non-keys × frames.
+
+use std::collections::HashMap;
+
+use glam::DMat3;
+
+use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
+use super::poses::{PoseGrads, Poses};
+use crate::math::dqb::{self, Dq};
+use crate::math::quat64::{self as q4, M3, V3};
+use crate::tables::edges::{EdgeKind, Edges};
+use crate::tables::key_nodes::{KeyNodes, Role};
+use crate::util::rng::rank_key;
+
+/// The metric of the anchor and DQB position terms (profile rows 16-17, 40-42).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum AnchorMetric {
+    /// ‖x‖_{U⁻¹} read literally: √(xᵀ U⁻¹ x), U = R_wc diag(r u) R_wcᵀ (Eq. 6), i.e.
+    /// Σ_c (R_cw x)_c² / (r_c u): depth (r_z = 0.01) is 100× stiffer, unreliable u weaker.
+    PaperLiteral,
+    /// The release's precision: √(xᵀ R_cwᵀ diag(r) R_cw x), u only through the confidence
+    /// mask u < 1/contrib_threshold (terms outside it are 0); depth is cheaper.
+    Release,
+    /// Plain Euclidean ‖x‖ (ablation (c) of Table 3, `--no-loss-weighting`).
+    Euclidean,
+}
+
+/// How sums over (t, i) are reduced.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum Reduction {
+    /// Σ_t Σ_i, as the paper's formulas are written.
+    Sum,
+    /// The mean over the terms (the release's `mean`).
+    Mean,
+}
+
+/// Settings of the graph objective (every profile difference is one field).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct GraphSettings {
+    /// Metric of the anchor and DQB position terms.
+    pub anchor_metric: AnchorMetric,
+    /// r_x, r_y, r_z of Eq. 6.
+    pub r_xyz: [f64; 3],
+    /// Release confidence mask: u < 1/contrib_threshold.
+    pub contrib_threshold: f64,
+    /// Reduction of the anchor and DQB terms.
+    pub reduction: Reduction,
+    /// Weight of the key anchor (paper 1, release 0: prep only).
+    pub key_anchor: f64,
+    /// Weight of the non-key anchor (paper 1, release 0).
+    pub nonkey_anchor: f64,
+    /// Weight of the DQB position term (paper 1, release 1).
+    pub dqb: f64,
+    /// Weight of the release's DQB rotation term ‖q^DQB − q‖ (paper 0, release 1).
+    pub dqb_rotation: f64,
+    /// Form of the key motion and smoothness terms.
+    pub motion: MotionForm,
+    /// Weight of the key edge terms (paper 1; release λ_graph·λ_key = 2·100).
+    pub key_motion: f64,
+    /// λ_iso, λ_rigid, λ_rot of the paper form (1, 1, 0.01).
+    pub lambda_iso_rigid_rot: [f64; 3],
+    /// λ_vel, λ_acc (paper 0.01, 0.01; release 100, 1).
+    pub lambda_vel_acc: [f64; 2],
+    /// Fraction of key edges kept per step in the release form (0.8).
+    pub edge_keep_ratio: f64,
+    /// Canonical frame of the paper's fixed rest lengths.
+    pub canonical_frame: usize,
+}
+
+impl GraphSettings {
+    /// The defaults of `profile` (official-release.md Sec. 11).
+    pub fn defaults(profile: crate::stages::params::Profile) -> Self {
+        let paper = profile == crate::stages::params::Profile::Paper;
+        GraphSettings {
+            anchor_metric: if paper { AnchorMetric::PaperLiteral } else { AnchorMetric::Release },
+            r_xyz: if paper { [1.0, 1.0, 0.01] } else { [1.0, 1.0, 0.1] },
+            contrib_threshold: 2.0,
+            reduction: if paper { Reduction::Sum } else { Reduction::Mean },
+            key_anchor: if paper { 1.0 } else { 0.0 },
+            nonkey_anchor: if paper { 1.0 } else { 0.0 },
+            dqb: if paper { 1.0 } else { 2.0 },
+            dqb_rotation: if paper { 0.0 } else { 2.0 },
+            motion: if paper { MotionForm::Paper } else { MotionForm::Release },
+            key_motion: if paper { 1.0 } else { 200.0 },
+            lambda_iso_rigid_rot: [1.0, 1.0, 0.01],
+            lambda_vel_acc: if paper { [0.01, 0.01] } else { [100.0, 1.0] },
+            edge_keep_ratio: if paper { 1.0 } else { 0.8 },
+            canonical_frame: 0,
+        }
+    }
+}
+
+/// A trainable tensor of the objective, for the training loop's Adam.
+pub struct ParamSlice<'a> {
+    /// Name (the release's tensor name where there is one).
+    pub name: &'static str,
+    /// Values, flat.
+    pub values: &'a mut [f32],
+    /// Gradients of the last [`GraphObjective::evaluate`], same layout.
+    pub grads: &'a [f32],
+    /// Learning-rate key of the profile (release `OptimCFG`: `dists_key` 1.6e-4,
+    /// `weight_dist_key` 1e-4, `src_xyz_1_nonkey` 1e-4, ...).
+    pub lr_key: &'static str,
+}
+
+/// The graph objective over the Gaussians of a [`Poses`] (indices are pose indices `0..N`).
+pub struct GraphObjective {
+    s: GraphSettings,
+    frames: usize,
+    n: usize,
+    ids: Vec<u32>,
+    keys: Vec<u32>,
+    nonkeys: Vec<u32>,
+    /// Key-key edges, compact indices into `keys`, grouped by source.
+    ksrc: Vec<u32>,
+    kdst: Vec<u32>,
+    /// Trainable raw key-key weights W `[E]` and rest lengths D `[E]`.
+    w_raw: Vec<f32>,
+    rest: Vec<f32>,
+    g_w_raw: Vec<f32>,
+    g_rest: Vec<f32>,
+    /// Non-key → key edges, CSR over `nonkeys`: `nk_off[u]..nk_off[u+1]`, compact key index.
+    nk_off: Vec<usize>,
+    nk_key: Vec<u32>,
+    nk_w: Vec<f64>,
+    t_hat: Vec<u32>,
+    /// Trainable source poses `[nu, 3]`, `[nu, 4]`.
+    src_p: Vec<f32>,
+    src_q: Vec<f32>,
+    g_src_p: Vec<f32>,
+    g_src_q: Vec<f32>,
+    /// p° `[T, N]`, u `[T, N]`, R_cw `[T]`.
+    p0: Vec<[f32; 3]>,
+    u: Vec<f32>,
+    rot: Vec<M3>,
+}
+
+/// Inputs of [`GraphObjective::new`], all in pose index order.
+pub struct GraphInputs<'a> {
+    /// p° and q°: the poses before optimisation `[T, N]`.
+    pub initial: &'a Poses,
+    /// gaussian_id of each pose index `[N]`.
+    pub ids: &'a [u32],
+    /// Key pose indices `[K]`.
+    pub keys: &'a [u32],
+    /// Non-key pose indices `[nu]`, their t̂ `[nu]`, and their key edges as
+    /// `(pose index of the key, weight)` lists `[nu][k]`.
+    pub nonkeys: &'a [u32],
+    /// t̂ of each non-key `[nu]`.
+    pub t_hat: &'a [u32],
+    /// Key edges of each non-key.
+    pub nonkey_edges: &'a [Vec<(u32, f32)>],
+    /// Key-key edges `(src pose index, dst pose index, weight)`, grouped by source.
+    pub key_edges: &'a [(u32, u32, f32)],
+    /// u_{t,i} `[T, N]`.
+    pub u: &'a [f32],
+    /// World-to-camera rotation R_cw of each frame's training camera `[T]`.
+    pub rot_cw: &'a [DMat3],
+}
+
+impl GraphObjective {
+    /// Build from plain arrays. Errors name the inconsistent input.
+    pub fn new(inp: &GraphInputs, s: GraphSettings) -> Result<Self, String> {
+        let (t, n) = (inp.initial.frames, inp.initial.n);
+        inp.initial.check()?;
+        if inp.ids.len() != n || inp.u.len() != t * n || inp.rot_cw.len() != t {
+            return Err(format!(
+                "graph objective: {} ids, {} u, {} rotations for N = {n}, T = {t}",
+                inp.ids.len(),
+                inp.u.len(),
+                inp.rot_cw.len()
+            ));
+        }
+        let nu = inp.nonkeys.len();
+        if inp.t_hat.len() != nu || inp.nonkey_edges.len() != nu {
+            return Err("graph objective: one t_hat and one edge list per non-key".into());
+        }
+        let key_of: HashMap<u32, u32> =
+            inp.keys.iter().enumerate().map(|(k, &i)| (i, k as u32)).collect();
+        let compact = |i: u32| {
+            key_of.get(&i).copied().ok_or_else(|| format!("edge to pose {i}, which is no key"))
+        };
+        let (mut ksrc, mut kdst, mut w_raw, mut rest) = (vec![], vec![], vec![], vec![]);
+        let cf = s.canonical_frame.min(t.saturating_sub(1));
+        for &(a, b, w) in inp.key_edges {
+            let (ca, cb) = (compact(a)?, compact(b)?);
+            ksrc.push(ca);
+            kdst.push(cb);
+            w_raw.push(w);
+            let d = |f: usize| {
+                let (pa, pb) = (inp.initial.p(f, a as usize), inp.initial.p(f, b as usize));
+                let d = [0, 1, 2].map(|c| (pb[c] - pa[c]) as f64);
+                (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+            };
+            rest.push(match s.motion {
+                MotionForm::Paper => d(cf) as f32,
+                MotionForm::Release => ((0..t).map(d).sum::<f64>() / t.max(1) as f64) as f32,
+            });
+        }
+        let (mut nk_off, mut nk_key, mut nk_w) = (vec![0], vec![], vec![]);
+        let (mut src_p, mut src_q) = (Vec::with_capacity(3 * nu), Vec::with_capacity(4 * nu));
+        for (u, list) in inp.nonkey_edges.iter().enumerate() {
+            let sum: f64 = list.iter().map(|e| e.1 as f64).sum();
+            for &(k, w) in list {
+                nk_key.push(compact(k)?);
+                nk_w.push(if sum > 0.0 { w as f64 / sum } else { 1.0 / list.len() as f64 });
+            }
+            nk_off.push(nk_key.len());
+            let th = inp.t_hat[u] as usize;
+            if th >= t {
+                return Err(format!("non-key {u}: t_hat {th} out of range (T = {t})"));
+            }
+            src_p.extend(inp.initial.p(th, inp.nonkeys[u] as usize));
+            src_q.extend(inp.initial.q(th, inp.nonkeys[u] as usize));
+        }
+        let ne = ksrc.len();
+        Ok(GraphObjective {
+            frames: t,
+            n,
+            ids: inp.ids.to_vec(),
+            keys: inp.keys.to_vec(),
+            nonkeys: inp.nonkeys.to_vec(),
+            ksrc,
+            kdst,
+            g_w_raw: vec![0.0; ne],
+            g_rest: vec![0.0; ne],
+            w_raw,
+            rest,
+            nk_off,
+            nk_key,
+            nk_w,
+            t_hat: inp.t_hat.to_vec(),
+            g_src_p: vec![0.0; src_p.len()],
+            g_src_q: vec![0.0; src_q.len()],
+            src_p,
+            src_q,
+            p0: inp.initial.position.clone(),
+            u: inp.u.to_vec(),
+            rot: inp
+                .rot_cw
+                .iter()
+                .map(|r| {
+                    let c = r.to_cols_array_2d();
+                    [0, 1, 2].map(|i| [c[0][i], c[1][i], c[2][i]])
+                })
+                .collect(),
+            s,
+        })
+    }
+
+    /// Build from the tables: `initial` poses and their `ids` (pose index order), the
+    /// key-node table, the edges table, u `[T, N]` in pose order (φ where unmeasured) and
+    /// the training cameras' R_cw `[T]`. Gaussians of the tables that are not in `ids` are
+    /// an error; `unlinked`/`culled` roles get no graph terms.
+    pub fn from_tables(
+        initial: &Poses,
+        ids: &[u32],
+        key_nodes: &KeyNodes,
+        edges: &Edges,
+        u: &[f32],
+        rot_cw: &[DMat3],
+        s: GraphSettings,
+    ) -> Result<Self, String> {
+        let index: HashMap<u32, u32> =
+            ids.iter().enumerate().map(|(i, &id)| (id, i as u32)).collect();
+        let pose = |id: u32, what: &str| {
+            index
+                .get(&id)
+                .copied()
+                .ok_or_else(|| format!("{what}: Gaussian {id} is not in the model"))
+        };
+        let (mut keys, mut nonkeys, mut t_hat) = (vec![], vec![], vec![]);
+        let mut nonkey_row: HashMap<u32, usize> = HashMap::new();
+        for (row, (&id, role)) in key_nodes.id.iter().zip(&key_nodes.role).enumerate() {
+            match role {
+                Role::Key => keys.push(pose(id, "key_nodes")?),
+                Role::Nonkey => {
+                    nonkey_row.insert(id, nonkeys.len());
+                    nonkeys.push(pose(id, "key_nodes")?);
+                    t_hat.push(key_nodes.t_hat[row]);
+                }
+                Role::Unlinked | Role::Culled => {}
+            }
+        }
+        let mut nonkey_edges = vec![Vec::new(); nonkeys.len()];
+        let mut key_edges = Vec::new();
+        for e in 0..edges.len() {
+            let (a, b, w) = (edges.src[e], edges.dst[e], edges.weight[e]);
+            match edges.kind[e] {
+                EdgeKind::KeyKey => key_edges.push((pose(a, "edges")?, pose(b, "edges")?, w)),
+                EdgeKind::NonkeyKey => {
+                    let u = *nonkey_row
+                        .get(&a)
+                        .ok_or_else(|| format!("edges: row {e}: source {a} is not a non-key"))?;
+                    nonkey_edges[u].push((pose(b, "edges")?, w));
+                }
+            }
+        }
+        key_edges.sort_by_key(|e| e.0);
+        let inp = GraphInputs {
+            initial,
+            ids,
+            keys: &keys,
+            nonkeys: &nonkeys,
+            t_hat: &t_hat,
+            nonkey_edges: &nonkey_edges,
+            key_edges: &key_edges,
+            u,
+            rot_cw,
+        };
+        Self::new(&inp, s)
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &GraphSettings {
+        &self.s
+    }
+
+    /// The trainable tensors and the gradients of the last evaluation.
+    pub fn params_mut(&mut self) -> Vec<ParamSlice<'_>> {
+        let mut out = vec![
+            ParamSlice {
+                name: "src_xyz_1_nonkey",
+                values: &mut self.src_p,
+                grads: &self.g_src_p,
+                lr_key: "graph",
+            },
+            ParamSlice {
+                name: "src_xyzw_1_nonkey",
+                values: &mut self.src_q,
+                grads: &self.g_src_q,
+                lr_key: "graph",
+            },
+            ParamSlice {
+                name: "weight_dist_key",
+                values: &mut self.w_raw,
+                grads: &self.g_w_raw,
+                lr_key: "graph",
+            },
+        ];
+        if self.s.motion == MotionForm::Release {
+            out.push(ParamSlice {
+                name: "dists_key",
+                values: &mut self.rest,
+                grads: &self.g_rest,
+                lr_key: "dists_key",
+            });
+        }
+        out
+    }
+
+    /// The current key-key weights w_ij = |W_ij| / Σ_j |W_ij| `[E]`.
+    fn key_weights(&self) -> Vec<f64> {
+        let mut w = vec![0.0; self.ksrc.len()];
+        let mut e = 0;
+        while e < w.len() {
+            let s = e;
+            while e < w.len() && self.ksrc[e] == self.ksrc[s] {
+                e += 1;
+            }
+            let sum: f64 = self.w_raw[s..e].iter().map(|x| x.abs() as f64).sum();
+            for k in s..e {
+                w[k] = if sum > 0.0 { self.w_raw[k].abs() as f64 / sum } else { 0.0 };
+            }
+        }
+        w
+    }
+
+    /// The learned graph as an edges table (key-key: current w_ij; nonkey-key: the fixed
+    /// normalised weights) and the key-key rest lengths D_ij `[E_key]`.
+    pub fn learned_edges(&self) -> (Edges, Vec<f32>) {
+        let mut out = Edges::default();
+        let w = self.key_weights();
+        let id = |pose: u32| self.ids[pose as usize];
+        for e in 0..self.ksrc.len() {
+            let (a, b) = (self.keys[self.ksrc[e] as usize], self.keys[self.kdst[e] as usize]);
+            out.push(id(a), id(b), EdgeKind::KeyKey, w[e] as f32);
+        }
+        for (u, &nk) in self.nonkeys.iter().enumerate() {
+            for e in self.nk_off[u]..self.nk_off[u + 1] {
+                let key = self.keys[self.nk_key[e] as usize];
+                out.push(id(nk), id(key), EdgeKind::NonkeyKey, self.nk_w[e] as f32);
+            }
+        }
+        (out, self.rest.clone())
+    }
+
+    /// The metric of frame t, Gaussian i: per-axis factors in the camera frame (already
+    /// multiplied by the per-(t, i) weight), or `None` when the term is masked out.
+    fn metric(&self, t: usize, i: usize) -> Option<V3> {
+        let r = self.s.r_xyz;
+        match self.s.anchor_metric {
+            AnchorMetric::Euclidean => Some([1.0; 3]),
+            AnchorMetric::PaperLiteral => {
+                let u = self.u[t * self.n + i] as f64;
+                Some([1.0 / (r[0] * u), 1.0 / (r[1] * u), 1.0 / (r[2] * u)])
+            }
+            AnchorMetric::Release => {
+                ((self.u[t * self.n + i] as f64) < 1.0 / self.s.contrib_threshold).then_some(r)
+            }
+        }
+    }
+
+    /// √(Σ_c k_c (R_t x)_c² + 1e-8) and its gradient with respect to x.
+    fn distance(&self, t: usize, k: V3, x: V3) -> (f64, V3) {
+        let rm = &self.rot[t];
+        let y = q4::mat_vec(rm, x);
+        let d = (k[0] * y[0] * y[0] + k[1] * y[1] * y[1] + k[2] * y[2] * y[2] + 1e-8).sqrt();
+        let gy = [0, 1, 2].map(|c| k[c] * y[c] / d);
+        (d, q4::mat_t_vec(rm, gy))
+    }
+
+    /// Anchor Σ_t Σ_i ‖p_{i,t} − p°_{i,t}‖ over `nodes`, all frames; adds `weight ·` gradient.
+    fn anchor(&self, poses: &Poses, nodes: &[u32], weight: f64, grads: &mut PoseGrads) -> f64 {
+        if weight == 0.0 {
+            return 0.0;
+        }
+        let (mut sum, mut count) = (0.0, 0usize);
+        let mut gs: Vec<(usize, V3)> = Vec::new();
+        for t in 0..self.frames {
+            for &i in nodes {
+                let i = i as usize;
+                let Some(k) = self.metric(t, i) else { continue };
+                let o = t * self.n + i;
+                let x = [0, 1, 2].map(|c| (poses.position[o][c] - self.p0[o][c]) as f64);
+                let (d, g) = self.distance(t, k, x);
+                sum += d;
+                count += 1;
+                gs.push((o, g));
+            }
+        }
+        let norm = match self.s.reduction {
+            Reduction::Sum => 1.0,
+            Reduction::Mean => 1.0 / count.max(1) as f64,
+        };
+        for (o, g) in gs {
+            for c in 0..3 {
+                grads.position[o][c] += (weight * norm * g[c]) as f32;
+            }
+        }
+        sum * norm
+    }
+
+    /// Evaluate every term on `poses` (DQB terms on the batch `frames`), add the gradients
+    /// to `grads` (poses) and to the objective's own tensors (see [`Self::params_mut`];
+    /// reset here), and return each term's contribution (weight × value) by name.
+    pub fn evaluate(
+        &mut self,
+        poses: &Poses,
+        frames: &[usize],
+        rng_seed: u64,
+        grads: &mut PoseGrads,
+    ) -> Vec<(&'static str, f64)> {
+        assert_eq!((poses.frames, poses.n), (self.frames, self.n), "poses [T, N]");
+        self.g_w_raw.fill(0.0);
+        self.g_rest.fill(0.0);
+        self.g_src_p.fill(0.0);
+        self.g_src_q.fill(0.0);
+        let mut out = Vec::new();
+        let s = self.s.clone();
+        let ka = self.anchor(poses, &self.keys.clone(), s.key_anchor, grads);
+        out.push(("key_anchor", s.key_anchor * ka));
+        let na = self.anchor(poses, &self.nonkeys.clone(), s.nonkey_anchor, grads);
+        out.push(("nonkey_anchor", s.nonkey_anchor * na));
+        let (dp, dq) = self.dqb_terms(poses, frames, grads);
+        out.push(("nonkey_dqb", s.dqb * dp));
+        out.push(("nonkey_dqb_rotation", s.dqb_rotation * dq));
+        out.extend(self.key_motion(poses, rng_seed, grads));
+        // Smoothness over keys and non-keys.
+        let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
+        let track = Track::gather(poses, &all);
+        let mut tg = TrackGrad::zeros(&track);
+        let [lv, la] = s.lambda_vel_acc;
+        out.push(("velocity", lv * motion::velocity(&track, s.motion, lv, &mut tg)));
+        out.push(("acceleration", la * motion::acceleration(&track, s.motion, la, &mut tg)));
+        tg.scatter(&track, &all, grads);
+        out
+    }
+
+    /// Key edge terms; returns their weighted contributions.
+    fn key_motion(
+        &mut self,
+        poses: &Poses,
+        seed: u64,
+        grads: &mut PoseGrads,
+    ) -> Vec<(&'static str, f64)> {
+        let s = self.s.clone();
+        let track = Track::gather(poses, &self.keys);
+        let mut tg = TrackGrad::zeros(&track);
+        let w_all = self.key_weights();
+        // Kept edges: all (paper), or w > 1e-4 and a seeded fraction (release).
+        let kept: Vec<usize> = (0..self.ksrc.len())
+            .filter(|&e| match s.motion {
+                MotionForm::Paper => true,
+                MotionForm::Release => {
+                    let r =
+                        (rank_key(seed, 0x6564_6765, e as u64) >> 11) as f64 / (1u64 << 53) as f64;
+                    w_all[e] > 1e-4 && r < s.edge_keep_ratio
+                }
+            })
+            .collect();
+        let src: Vec<u32> = kept.iter().map(|&e| self.ksrc[e]).collect();
+        let dst: Vec<u32> = kept.iter().map(|&e| self.kdst[e]).collect();
+        let w: Vec<f64> = kept.iter().map(|&e| w_all[e]).collect();
+        let rest: Vec<f64> = kept.iter().map(|&e| self.rest[e] as f64).collect();
+        let es = EdgeSet { src: &src, dst: &dst, w: &w };
+        let mut ge = EdgeGrad::zeros(kept.len());
+        let ne = kept.len().max(1) as f64;
+        let nt = self.frames;
+        let km = s.key_motion;
+        let mut out = Vec::new();
+        match s.motion {
+            MotionForm::Paper => {
+                let [li, lr, lo] = s.lambda_iso_rigid_rot;
+                let v =
+                    motion::isometry(&track, es, &rest, 1.0 / ne, km * li, &mut tg, Some(&mut ge));
+                out.push(("key_isometry", km * li * v));
+                let v = motion::rigidity(&track, es, 1, 1.0 / ne, km * lr, &mut tg, Some(&mut ge));
+                out.push(("key_rigidity", km * lr * v));
+                let v = motion::relative_rotation(
+                    &track,
+                    es,
+                    1,
+                    1.0 / ne,
+                    km * lo,
+                    &mut tg,
+                    Some(&mut ge),
+                );
+                out.push(("key_rotation", km * lo * v));
+            }
+            MotionForm::Release => {
+                let mean = |d: usize| 1.0 / (ne * nt.saturating_sub(d).max(1) as f64);
+                let v = motion::rigidity(&track, es, 1, mean(1), km, &mut tg, Some(&mut ge));
+                out.push(("key_rigidity", km * v));
+                let v =
+                    motion::relative_rotation(&track, es, 1, mean(1), km, &mut tg, Some(&mut ge));
+                out.push(("key_rotation", km * v));
+                let v = motion::isometry(
+                    &track,
+                    es,
+                    &rest,
+                    mean(0),
+                    100.0 * km,
+                    &mut tg,
+                    Some(&mut ge),
+                );
+                out.push(("key_isometry", 100.0 * km * v));
+                for (name, d, on) in [
+                    ("key_rigidity_long", (nt / 2).min(50), nt > 40),
+                    ("key_rigidity_10", 10, nt > 20),
+                ] {
+                    let v = if on {
+                        motion::rigidity(&track, es, d, mean(d), 100.0 * km, &mut tg, Some(&mut ge))
+                    } else {
+                        0.0
+                    };
+                    out.push((name, 100.0 * km * v));
+                }
+            }
+        }
+        tg.scatter(&track, &self.keys, grads);
+        // Chain the per-edge gradients to W (row L1 normalisation) and D.
+        let mut g_w = vec![0.0f64; self.ksrc.len()];
+        for (k, &e) in kept.iter().enumerate() {
+            g_w[e] += ge.w[k];
+            self.g_rest[e] += ge.rest[k] as f32;
+        }
+        if s.motion == MotionForm::Paper {
+            self.g_rest.fill(0.0);
+        }
+        let mut e = 0;
+        while e < g_w.len() {
+            let st = e;
+            while e < g_w.len() && self.ksrc[e] == self.ksrc[st] {
+                e += 1;
+            }
+            let sum: f64 = self.w_raw[st..e].iter().map(|x| x.abs() as f64).sum();
+            if sum > 0.0 {
+                let dot: f64 = (st..e).map(|k| g_w[k] * w_all[k]).sum();
+                for k in st..e {
+                    let sg = if self.w_raw[k] >= 0.0 { 1.0 } else { -1.0 };
+                    self.g_w_raw[k] += (sg * (g_w[k] - dot) / sum) as f32;
+                }
+            }
+        }
+        out
+    }
+
+    /// The DQB position and rotation terms over non-keys and the batch frames.
+    fn dqb_terms(&mut self, poses: &Poses, frames: &[usize], grads: &mut PoseGrads) -> (f64, f64) {
+        let s = self.s.clone();
+        if (s.dqb == 0.0 && s.dqb_rotation == 0.0) || self.nonkeys.is_empty() {
+            return (0.0, 0.0);
+        }
+        let nk = self.keys.len();
+        // Unit dual quaternions of the keys' poses at every frame `[T, K]`.
+        let mut dq_key: Vec<(Dq, f64)> = Vec::with_capacity(self.frames * nk);
+        for t in 0..self.frames {
+            for &k in &self.keys {
+                let o = t * self.n + k as usize;
+                dq_key.push(dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o])));
+            }
+        }
+        let mut g_dq = vec![[0.0f64; 8]; self.frames * nk];
+        let (mut sum_p, mut sum_q) = (0.0, 0.0);
+        let linked = (0..self.nonkeys.len()).filter(|&u| self.nk_off[u + 1] > self.nk_off[u]);
+        let norm = match s.reduction {
+            Reduction::Sum => 1.0,
+            Reduction::Mean => 1.0 / (linked.count() * frames.len()).max(1) as f64,
+        };
+        let (wp, wq) = (s.dqb * norm, s.dqb_rotation * norm);
+        let mut rel: Vec<Dq> = Vec::new();
+        let mut signs: Vec<f64> = Vec::new();
+        for (u, &node) in self.nonkeys.iter().enumerate() {
+            let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
+            if a == b {
+                continue;
+            }
+            let th = self.t_hat[u] as usize;
+            let w = &self.nk_w[a..b];
+            let sp = [0, 1, 2].map(|c| self.src_p[3 * u + c] as f64);
+            let sq = [0, 1, 2, 3].map(|c| self.src_q[4 * u + c] as f64);
+            for &t in frames {
+                rel.clear();
+                signs.clear();
+                for e in a..b {
+                    let k = self.nk_key[e] as usize;
+                    let (r, sg) = dqb::relative(&dq_key[t * nk + k].0, &dq_key[th * nk + k].0);
+                    rel.push(r);
+                    signs.push(sg);
+                }
+                let out = dqb::warp(&rel, w, sp, sq);
+                let o = t * self.n + node as usize;
+                let x = [0, 1, 2].map(|c| poses.position[o][c] as f64 - out.p[c]);
+                let k = match s.anchor_metric {
+                    AnchorMetric::Release => Some([1.0; 3]),
+                    _ => self.metric(t, node as usize),
+                };
+                let (mut g_p, mut g_q) = ([0.0; 3], [0.0; 4]);
+                if let Some(k) = k {
+                    let (d, g) = self.distance(t, k, x);
+                    sum_p += d;
+                    g_p = g.map(|v| -wp * v);
+                    for c in 0..3 {
+                        grads.position[o][c] += (wp * g[c]) as f32;
+                    }
+                }
+                if s.dqb_rotation != 0.0 {
+                    let (qu, qn) = q4::normalize(q4::q64(poses.rotation[o]));
+                    let r = [0, 1, 2, 3].map(|c| out.q[c] - qu[c]);
+                    let len = q4::norm(r);
+                    sum_q += len;
+                    if len > 0.0 {
+                        g_q = r.map(|v| wq * v / len);
+                        let gu = q4::normalize_vjp(qu, qn, g_q.map(|v| -v));
+                        for c in 0..4 {
+                            grads.rotation[o][c] += gu[c] as f32;
+                        }
+                    }
+                }
+                let wg = dqb::warp_vjp(&rel, w, sp, sq, g_p, g_q);
+                for c in 0..3 {
+                    self.g_src_p[3 * u + c] += wg.src_p[c] as f32;
+                }
+                for c in 0..4 {
+                    self.g_src_q[4 * u + c] += wg.src_q[c] as f32;
+                }
+                for (j, e) in (a..b).enumerate() {
+                    let k = self.nk_key[e] as usize;
+                    let g_rel = wg.blend.map(|v| w[j] * v);
+                    let (gd, gs) = dqb::relative_vjp(
+                        &dq_key[t * nk + k].0,
+                        &dq_key[th * nk + k].0,
+                        signs[j],
+                        &g_rel,
+                    );
+                    for c in 0..8 {
+                        g_dq[t * nk + k][c] += gd[c];
+                        g_dq[th * nk + k][c] += gs[c];
+                    }
+                }
+            }
+        }
+        for t in 0..self.frames {
+            for (kk, &k) in self.keys.iter().enumerate() {
+                let g = &g_dq[t * nk + kk];
+                if g.iter().all(|v| *v == 0.0) {
+                    continue;
+                }
+                let o = t * self.n + k as usize;
+                let (d, qn) = &dq_key[t * nk + kk];
+                let (gq, gp) = dqb::from_pose_vjp(d, *qn, q4::v64(poses.position[o]), g);
+                for c in 0..3 {
+                    grads.position[o][c] += gp[c] as f32;
+                }
+                for c in 0..4 {
+                    grads.rotation[o][c] += gq[c] as f32;
+                }
+            }
+        }
+        (sum_p * norm, sum_q * norm)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::quat64::tests::TestRng;
+    use crate::stages::params::Profile;
+
+    /// T = 22 frames (so the release's Δ = 10 term is on), 3 keys and 4 non-keys.
+    fn case(s: GraphSettings) -> (GraphObjective, Poses) {
+        let (t, n) = (22, 7);
+        let mut rng = TestRng(21);
+        let mut p0 = Poses::identity(t, n);
+        for k in 0..t * n {
+            p0.position[k] = rng.v().map(|x| x as f32);
+            p0.rotation[k] = rng.q().map(|x| (x + 0.7) as f32);
+        }
+        let keys = [0u32, 2, 4];
+        let nonkeys = [1u32, 3, 5, 6];
+        let key_edges: Vec<(u32, u32, f32)> = keys
+            .iter()
+            .flat_map(|&a| keys.iter().filter(move |&&b| b != a).map(move |&b| (a, b, 0.5)))
+            .collect();
+        let nonkey_edges: Vec<Vec<(u32, f32)>> = vec![
+            vec![(0, 0.6), (2, 0.4)],
+            vec![(2, 1.0), (4, 1.0), (0, 0.5)],
+            vec![(4, 1.0)],
+            vec![],
+        ];
+        let u: Vec<f32> = (0..t * n).map(|_| (0.55 + 0.45 * rng.next()) as f32).collect();
+        let rot: Vec<DMat3> = (0..t)
+            .map(|f| DMat3::from_euler(glam::EulerRot::XYZ, 0.1 * f as f64, -0.7, 0.3))
+            .collect();
+        let ids: Vec<u32> = (100..100 + n as u32).collect();
+        let inp = GraphInputs {
+            initial: &p0,
+            ids: &ids,
+            keys: &keys,
+            nonkeys: &nonkeys,
+            t_hat: &[3, 0, 7, 1],
+            nonkey_edges: &nonkey_edges,
+            key_edges: &key_edges,
+            u: &u,
+            rot_cw: &rot,
+        };
+        let obj = GraphObjective::new(&inp, s).unwrap();
+        // Move the poses away from p° (and the raw weights off uniform) so no term is at a kink.
+        let mut poses = p0.clone();
+        for k in 0..t * n {
+            for c in 0..3 {
+                poses.position[k][c] += (0.2 * rng.next()) as f32;
+            }
+            for c in 0..4 {
+                poses.rotation[k][c] += (0.2 * rng.next()) as f32;
+            }
+        }
+        (obj, poses)
+    }
+
+    fn total(obj: &mut GraphObjective, poses: &Poses) -> f64 {
+        let mut g = PoseGrads::zeros(poses.frames, poses.n);
+        obj.evaluate(poses, &[1, 4, 20], 7, &mut g).iter().map(|x| x.1).sum()
+    }
+
+    #[test]
+    fn every_graph_term_matches_finite_differences() {
+        let mut fails = Vec::new();
+        let mut report = Vec::new();
+        let variants = [
+            ("paper", GraphSettings::defaults(Profile::Paper)),
+            ("release", GraphSettings::defaults(Profile::Release)),
+            (
+                "release-with-anchors",
+                GraphSettings {
+                    key_anchor: 1.0,
+                    nonkey_anchor: 1.0,
+                    ..GraphSettings::defaults(Profile::Release)
+                },
+            ),
+            (
+                "no-loss-weighting",
+                GraphSettings {
+                    anchor_metric: AnchorMetric::Euclidean,
+                    ..GraphSettings::defaults(Profile::Paper)
+                },
+            ),
+        ];
+        for (name, s) in variants {
+            let (mut obj, mut poses) = case(s);
+            for k in 0..obj.w_raw.len() {
+                obj.w_raw[k] *= 1.0 + 0.3 * (k as f32 * 0.37).sin();
+            }
+            let mut g = PoseGrads::zeros(poses.frames, poses.n);
+            let terms = obj.evaluate(&poses, &[1, 4, 20], 7, &mut g);
+            assert!(terms.iter().all(|t| t.1.is_finite()), "{name}: {terms:?}");
+            let own: Vec<(&str, Vec<f32>)> =
+                obj.params_mut().into_iter().map(|p| (p.name, p.grads.to_vec())).collect();
+            let h = 1e-4f32;
+            let mut worst = 0.0f64;
+            let mut check = |what: String, analytic: f64, fp: f64, fm: f64, step: f64| {
+                let fd = (fp - fm) / step;
+                let err = (analytic - fd).abs();
+                let tol = 2e-3 * (1.0 + fd.abs());
+                worst = worst.max(err / (1.0 + fd.abs()));
+                if err > tol {
+                    fails.push(format!("{name} {what}: analytic {analytic} fd {fd}"));
+                }
+            };
+            for k in 0..poses.position.len() {
+                for c in 0..7 {
+                    let x = get(&poses, k, c);
+                    set(&mut poses, k, c, x + h);
+                    let xp = get(&poses, k, c);
+                    let fp = total(&mut obj, &poses);
+                    set(&mut poses, k, c, x - h);
+                    let xm = get(&poses, k, c);
+                    let fm = total(&mut obj, &poses);
+                    set(&mut poses, k, c, x);
+                    let a = if c < 3 { g.position[k][c] } else { g.rotation[k][c - 3] };
+                    check(format!("pose {k} comp {c}"), a as f64, fp, fm, (xp - xm) as f64);
+                }
+            }
+            for (pi, (pname, grads)) in own.iter().enumerate() {
+                for k in 0..grads.len() {
+                    let mut eval = |d: f32| {
+                        let x = {
+                            let mut ps = obj.params_mut();
+                            let v = &mut ps[pi].values[k];
+                            let x = *v;
+                            *v = x + d;
+                            (x, *v)
+                        };
+                        let f = total(&mut obj, &poses);
+                        obj.params_mut()[pi].values[k] = x.0;
+                        (f, x.1 as f64)
+                    };
+                    let (fp, xp) = eval(h);
+                    let (fm, xm) = eval(-h);
+                    check(format!("{pname}[{k}]"), grads[k] as f64, fp, fm, xp - xm);
+                }
+            }
+            report.push(format!("{name}: max rel err {worst:.1e}"));
+        }
+        eprintln!("graph objective FD: {}", report.join(", "));
+        assert!(
+            fails.is_empty(),
+            "{} failures:\n{}",
+            fails.len(),
+            fails[..fails.len().min(30)].join("\n")
+        );
+    }
+
+    fn get(p: &Poses, k: usize, c: usize) -> f32 {
+        if c < 3 { p.position[k][c] } else { p.rotation[k][c - 3] }
+    }
+
+    fn set(p: &mut Poses, k: usize, c: usize, v: f32) {
+        if c < 3 { p.position[k][c] = v } else { p.rotation[k][c - 3] = v }
+    }
+
+    /// Timing at the brief's size: T = 121, N = 20,000 (400 keys), batch 8. Run with
+    /// `cargo test --release --lib evaluate_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "timing, not a check"]
+    fn evaluate_timing_t121_n20k() {
+        let (t, n, nk) = (121, 20_000, 400);
+        let mut rng = TestRng(5);
+        let mut p0 = Poses::identity(t, n);
+        for k in 0..t * n {
+            p0.position[k] = rng.v().map(|x| x as f32);
+            p0.rotation[k] = rng.q().map(|x| (x + 0.7) as f32);
+        }
+        let keys: Vec<u32> = (0..nk as u32).map(|k| k * 50).collect();
+        let nonkeys: Vec<u32> = (0..n as u32).filter(|i| i % 50 != 0).collect();
+        let u: Vec<f32> = (0..t * n).map(|_| (0.55 + 0.45 * rng.next()) as f32).collect();
+        let rot = vec![DMat3::IDENTITY; t];
+        let ids: Vec<u32> = (0..n as u32).collect();
+        let t_hat: Vec<u32> = nonkeys.iter().map(|i| i % t as u32).collect();
+        let nonkey_edges: Vec<Vec<(u32, f32)>> = nonkeys
+            .iter()
+            .map(|i| (0..5).map(|j| (keys[(*i as usize / 50 + j) % nk], 0.2)).collect())
+            .collect();
+        for (profile, k) in [(Profile::Paper, 8), (Profile::Release, 120)] {
+            let key_edges: Vec<(u32, u32, f32)> = (0..nk)
+                .flat_map(|a| (1..=k).map(move |d| (a, (a + d) % nk)))
+                .map(|(a, b)| (keys[a], keys[b], 1.0))
+                .collect();
+            let inp = GraphInputs {
+                initial: &p0,
+                ids: &ids,
+                keys: &keys,
+                nonkeys: &nonkeys,
+                t_hat: &t_hat,
+                nonkey_edges: &nonkey_edges,
+                key_edges: &key_edges,
+                u: &u,
+                rot_cw: &rot,
+            };
+            let mut obj = GraphObjective::new(&inp, GraphSettings::defaults(profile)).unwrap();
+            let mut g = PoseGrads::zeros(t, n);
+            let frames = [3, 17, 30, 44, 58, 71, 90, 111];
+            let start = std::time::Instant::now();
+            let reps = 3;
+            for r in 0..reps {
+                g.clear();
+                obj.evaluate(&p0, &frames, r, &mut g);
+            }
+            let ms = start.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            let part = |f: &mut dyn FnMut()| {
+                let s = std::time::Instant::now();
+                f();
+                s.elapsed().as_secs_f64() * 1e3
+            };
+            let all: Vec<u32> = keys.iter().chain(&nonkeys).copied().collect();
+            let smooth = part(&mut || {
+                let tr = Track::gather(&p0, &all);
+                let mut tg = TrackGrad::zeros(&tr);
+                motion::velocity(&tr, obj.s.motion, 1.0, &mut tg);
+                motion::acceleration(&tr, obj.s.motion, 1.0, &mut tg);
+                tg.scatter(&tr, &all, &mut g);
+            });
+            let dqb_ms = part(&mut || {
+                obj.dqb_terms(&p0, &frames, &mut g);
+            });
+            let key_ms = part(&mut || {
+                obj.key_motion(&p0, 1, &mut g);
+            });
+            let anchor_ms = part(&mut || {
+                obj.anchor(&p0, &all, 1.0, &mut g);
+            });
+            eprintln!(
+                "  smoothness {smooth:.0} ms, DQB {dqb_ms:.0} ms, key motion {key_ms:.0} ms, anchors {anchor_ms:.0} ms"
+            );
+            eprintln!(
+                "evaluate {profile:?} (key k = {k}): {ms:.0} ms, {} threads",
+                rayon::current_num_threads()
+            );
+        }
+    }
+
+    #[test]
+    fn learned_edges_are_normalised_per_source() {
+        let (obj, _) = case(GraphSettings::defaults(Profile::Release));
+        let (edges, rest) = obj.learned_edges();
+        assert_eq!(rest.len(), 6);
+        let kk: f32 = (0..edges.len())
+            .filter(|&e| edges.kind[e] == EdgeKind::KeyKey && edges.src[e] == 100)
+            .map(|e| edges.weight[e])
+            .sum();
+        assert!((kk - 1.0).abs() < 1e-6);
+        assert_eq!(edges.len(), 6 + 6);
+    }
+}

@@ -1,0 +1,750 @@
+//! Motion regularisers of Appendix A.2 (paper) and of the release (`loss_rigidity.py`,
+//! `loss_dy.py`; official-release.md §5.3) over a weighted edge list, with analytic gradients
+//! to positions, rotations, edge weights and rest lengths.
+//!
+//! Terms, for an edge e = (i → j) with weight w_e and d_e(t) = p_j(t) − p_i(t):
+//! - isometry: w_e |D_e − ‖d_e(t)‖| against a rest length D_e (fixed canonical, or trainable);
+//! - rigidity with offset Δ: w_e ‖d_e(t−Δ) − R_i(t−Δ) R_i(t)ᵀ d_e(t)‖, the paper's
+//!   ‖p_{j,t−Δ} − T_{i,t−Δ} T_{i,t}⁻¹ p_{j,t}‖ (the release's ‖ΔR_i(t) d(t+1) − d(t)‖ is the
+//!   same with t shifted);
+//! - relative rotation: w_e ‖q_j(t) q_j(t−Δ)⁻¹ − q_i(t) q_i(t−Δ)⁻¹‖₂ on unit quaternions;
+//! - velocity and acceleration per Gaussian: the paper's L1 forms (positions; the relative
+//!   rotation's deviation from the identity, see [`MotionForm`]) summed over t and i, or the
+//!   release's mean squared velocity and mean L2 acceleration on raw components.
+//!
+//! The paper normalises edge sums by 1/(k|V|) (= 1/E for a kNN graph, E = k|V| edges) and
+//! sums over frames; the release averages over frames and kept edges. Every function returns
+//! its (unscaled) value and adds `scale ·` its gradient into a [`TrackGrad`].
+//!
+//! Work layout: the Gaussians of a loss are gathered into a frame-major f64 [`Track`]
+//! `[T, m]`. Terms that couple frames t−s..t are evaluated per block of ≥ s frames in two
+//! parallel phases (odd blocks, then even ones) so that each task owns the gradient rows it
+//! writes; per-task sums are reduced in block order, so results do not depend on the number
+//! of threads.
+
+use rayon::prelude::*;
+
+use super::poses::{PoseGrads, Poses};
+use crate::math::quat64::{self as q4, M3, Q, V3};
+
+/// Width of one gradient row: position (3), raw quaternion (4), unit quaternion (4).
+const GW: usize = 11;
+
+/// The poses of `m` Gaussians over T frames in f64, frame-major (`t * m + k`).
+#[derive(Debug, Clone)]
+pub struct Track {
+    /// T.
+    pub frames: usize,
+    /// m, the number of Gaussians gathered.
+    pub m: usize,
+    /// `[T, m, 3]` positions.
+    pub p: Vec<V3>,
+    /// `[T, m, 4]` raw (unnormalised) rotations.
+    pub q: Vec<Q>,
+    /// `[T, m, 4]` unit rotations.
+    pub u: Vec<Q>,
+    /// `[T, m]` norms of the raw rotations.
+    pub qn: Vec<f64>,
+}
+
+impl Track {
+    /// A track from f64 positions and raw rotations `[T, m]`.
+    pub fn new(frames: usize, m: usize, p: Vec<V3>, q: Vec<Q>) -> Self {
+        assert_eq!(p.len(), frames * m, "positions [T, m]");
+        assert_eq!(q.len(), frames * m, "rotations [T, m]");
+        let (u, qn) = q.iter().map(|&x| q4::normalize(x)).unzip();
+        Track { frames, m, p, q, u, qn }
+    }
+
+    /// Gather the Gaussians `nodes` (indices into `poses`, `[m]`) from every frame.
+    pub fn gather(poses: &Poses, nodes: &[u32]) -> Self {
+        let (t, m) = (poses.frames, nodes.len());
+        let mut p = Vec::with_capacity(t * m);
+        let mut q = Vec::with_capacity(t * m);
+        for f in 0..t {
+            let base = f * poses.n;
+            for &i in nodes {
+                p.push(q4::v64(poses.position[base + i as usize]));
+                q.push(q4::q64(poses.rotation[base + i as usize]));
+            }
+        }
+        Track::new(t, m, p, q)
+    }
+
+    #[inline]
+    fn at(&self, t: usize, k: usize) -> usize {
+        t * self.m + k
+    }
+}
+
+/// Gradients of a [`Track`]: `[T, m]` rows of (position, raw quaternion, unit quaternion).
+#[derive(Debug, Clone)]
+pub struct TrackGrad {
+    rows: Vec<[f64; GW]>,
+    m: usize,
+}
+
+impl TrackGrad {
+    /// Zero gradients for a track.
+    pub fn zeros(track: &Track) -> Self {
+        TrackGrad { rows: vec![[0.0; GW]; track.frames * track.m], m: track.m }
+    }
+
+    /// d loss / d position of Gaussian k at frame t.
+    pub fn position(&self, t: usize, k: usize) -> V3 {
+        let r = &self.rows[t * self.m + k];
+        [r[0], r[1], r[2]]
+    }
+
+    /// d loss / d raw rotation of Gaussian k at frame t (both paths, through the norm).
+    pub fn rotation(&self, track: &Track, t: usize, k: usize) -> Q {
+        let i = t * self.m + k;
+        let r = &self.rows[i];
+        let gu = q4::normalize_vjp(track.u[i], track.qn[i], [r[7], r[8], r[9], r[10]]);
+        [r[3] + gu[0], r[4] + gu[1], r[5] + gu[2], r[6] + gu[3]]
+    }
+
+    /// Add the gradients into `grads` at the Gaussians `nodes` (`[m]`, as gathered).
+    pub fn scatter(&self, track: &Track, nodes: &[u32], grads: &mut PoseGrads) {
+        let n = grads.position.len() / track.frames.max(1);
+        for t in 0..track.frames {
+            for (k, &i) in nodes.iter().enumerate() {
+                let (gp, gq) = (self.position(t, k), self.rotation(track, t, k));
+                let o = t * n + i as usize;
+                for c in 0..3 {
+                    grads.position[o][c] += gp[c] as f32;
+                }
+                for c in 0..4 {
+                    grads.rotation[o][c] += gq[c] as f32;
+                }
+            }
+        }
+    }
+}
+
+/// Edges over a track's Gaussians (compact indices `0..m`), `[E]` each. Edges from one source
+/// should be contiguous (kNN lists are): per-source quantities are computed once per run.
+#[derive(Debug, Clone, Copy)]
+pub struct EdgeSet<'a> {
+    /// Source i of each edge.
+    pub src: &'a [u32],
+    /// Destination j of each edge.
+    pub dst: &'a [u32],
+    /// Weight w_e of each edge.
+    pub w: &'a [f64],
+}
+
+impl EdgeSet<'_> {
+    /// Number of edges E.
+    pub fn len(&self) -> usize {
+        self.src.len()
+    }
+
+    /// Whether there are no edges.
+    pub fn is_empty(&self) -> bool {
+        self.src.is_empty()
+    }
+}
+
+/// Gradients of per-edge inputs, `[E]` each (empty when not requested).
+#[derive(Debug, Clone, Default)]
+pub struct EdgeGrad {
+    /// d loss / d w_e.
+    pub w: Vec<f64>,
+    /// d loss / d D_e (isometry rest lengths).
+    pub rest: Vec<f64>,
+}
+
+impl EdgeGrad {
+    /// Zeros for `e` edges.
+    pub fn zeros(e: usize) -> Self {
+        EdgeGrad { w: vec![0.0; e], rest: vec![0.0; e] }
+    }
+}
+
+/// Which variant of the velocity and acceleration terms (profile row 54).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum MotionForm {
+    /// Appendix A.2: Σ_t Σ_i ‖p_{t−1} − p_t‖₁ + ‖q_{t−1} q_t⁻¹ − 1‖₁ and
+    /// ‖p_{t−2} − 2p_{t−1} + p_t‖₁ + ‖q_{t−2} q_{t−1}⁻¹ (q_{t−1} q_t⁻¹)⁻¹ − 1‖₁. The paper
+    /// writes the L1 norm of the relative rotation itself, which is ≥ 1 for every unit
+    /// quaternion and smallest away from the identity; we read it as the relative rotation's
+    /// deviation from the identity (w ≥ 0 representative), which is what smoothness means.
+    Paper,
+    /// `loss_dy.py`: mean((p_t − p_{t+1})²) + mean((q_t − q_{t+1})²) over all components,
+    /// and mean ‖2p_t − p_{t−1} − p_{t+1}‖ + mean ‖2q_t − q_{t−1} − q_{t+1}‖ (raw q).
+    Release,
+}
+
+/// Per-block task layout of terms coupling frames t−span..=t: the blocks of `size ≥ span`
+/// frames, in two phases whose tasks own disjoint gradient rows.
+fn block_size(span: usize) -> usize {
+    span.max(8)
+}
+
+/// Run `f(t, base, rows)` for every t in `span.max(t_min)..frames`, where `rows` are the
+/// gradient rows of frames `base..` and include frames t−span..=t. Returns the per-task
+/// results in a fixed order (phase, block).
+fn frame_windows<R: Send>(
+    g: &mut TrackGrad,
+    frames: usize,
+    span: usize,
+    t_min: usize,
+    f: impl Fn(std::ops::Range<usize>, usize, &mut [[f64; GW]]) -> R + Sync,
+) -> Vec<R> {
+    let m = g.m;
+    let b = block_size(span);
+    let t_lo = span.max(t_min);
+    let mut out = Vec::new();
+    if m == 0 || frames <= t_lo {
+        return out;
+    }
+    // Phase 1: regions [2rb, 2rb + 2b) handle t in block 2r+1 (region 0 also block 0);
+    // phase 0: regions [b + 2rb, b + 2rb + 2b) handle t in block 2r+2. t − span ≥ the
+    // region's start since b ≥ span, and the regions of one phase are disjoint.
+    for phase in [1usize, 0] {
+        let skip = if phase == 1 { 0 } else { b };
+        if skip * m > g.rows.len() {
+            continue;
+        }
+        let tasks: Vec<R> = g.rows[skip * m..]
+            .par_chunks_mut(2 * b * m)
+            .enumerate()
+            .filter_map(|(r, rows)| {
+                let base = skip + 2 * r * b;
+                // The t handled: the second block of the region, plus (phase 1, region 0)
+                // the first block when span = 0 lets a frame pair with itself.
+                let first = if phase == 1 && r == 0 { 0 } else { base + b };
+                let lo = first.max(t_lo);
+                let hi = (base + 2 * b).min(frames);
+                (lo < hi).then(|| f(lo..hi, base, rows))
+            })
+            .collect();
+        out.extend(tasks);
+    }
+    out
+}
+
+/// Per-task result of an edge term: value and per-edge gradients.
+struct Partial {
+    value: f64,
+    g_w: Vec<f64>,
+    g_rest: Vec<f64>,
+}
+
+fn reduce(parts: Vec<Partial>, g_edges: Option<&mut EdgeGrad>) -> f64 {
+    let mut value = 0.0;
+    let mut ge = g_edges;
+    for p in parts {
+        value += p.value;
+        if let Some(ge) = ge.as_deref_mut() {
+            for (a, b) in ge.w.iter_mut().zip(&p.g_w) {
+                *a += b;
+            }
+            for (a, b) in ge.rest.iter_mut().zip(&p.g_rest) {
+                *a += b;
+            }
+        }
+    }
+    value
+}
+
+#[inline]
+fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+#[inline]
+fn norm3(a: V3) -> f64 {
+    (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
+}
+
+#[inline]
+fn add_to(row: &mut [f64; GW], off: usize, v: &[f64]) {
+    for (c, x) in v.iter().enumerate() {
+        row[off + c] += x;
+    }
+}
+
+/// Rigidity with offset Δ ≥ 1: `norm · Σ_{t=Δ}^{T−1} Σ_e w_e ‖d_e(t−Δ) − R_i(t−Δ) R_i(t)ᵀ d_e(t)‖`.
+pub fn rigidity(
+    track: &Track,
+    edges: EdgeSet,
+    delta: usize,
+    norm: f64,
+    scale: f64,
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+) -> f64 {
+    assert!(delta >= 1, "rigidity offset Δ ≥ 1");
+    let m = track.m;
+    let want_e = g_edges.is_some();
+    let ne = edges.len();
+    let parts = frame_windows(g, track.frames, delta, 0, |ts, base, rows| {
+        let mut part = Partial {
+            value: 0.0,
+            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
+            g_rest: Vec::new(),
+        };
+        for t in ts {
+            let (t0, t1) = (t - delta, t);
+            let mut e = 0;
+            while e < ne {
+                let i = edges.src[e] as usize;
+                let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
+                let c = q4::mul(a, q4::conj(b));
+                let rm = q4::to_rotmat(c);
+                let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+                let mut g_rm: M3 = [[0.0; 3]; 3];
+                let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
+                while e < ne && edges.src[e] as usize == i {
+                    let j = edges.dst[e] as usize;
+                    let d0 = sub(track.p[track.at(t0, j)], pi0);
+                    let d1 = sub(track.p[track.at(t1, j)], pi1);
+                    let ad1 = q4::mat_vec(&rm, d1);
+                    let r = sub(d0, ad1);
+                    let len = norm3(r);
+                    let w = edges.w[e];
+                    part.value += norm * w * len;
+                    if want_e {
+                        part.g_w[e] += scale * norm * len;
+                    }
+                    if len > 0.0 {
+                        let k = scale * norm * w / len;
+                        let gr = r.map(|x| x * k);
+                        let gd1 = q4::mat_t_vec(&rm, gr).map(|x| -x);
+                        q4::add_outer(&mut g_rm, gr.map(|x| -x), d1);
+                        add_to(&mut rows[(t0 - base) * m + j], 0, &gr);
+                        add_to(&mut rows[(t1 - base) * m + j], 0, &gd1);
+                        for c in 0..3 {
+                            g_pi0[c] -= gr[c];
+                            g_pi1[c] -= gd1[c];
+                        }
+                    }
+                    e += 1;
+                }
+                let g_c = q4::to_rotmat_vjp(c, &g_rm);
+                let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
+                add_to(&mut rows[(t0 - base) * m + i], 0, &g_pi0);
+                add_to(&mut rows[(t1 - base) * m + i], 0, &g_pi1);
+                add_to(&mut rows[(t0 - base) * m + i], 7, &g_a);
+                add_to(&mut rows[(t1 - base) * m + i], 7, &q4::conj(g_bc));
+            }
+        }
+        part
+    });
+    reduce(parts, g_edges)
+}
+
+/// Relative rotation with offset Δ ≥ 1:
+/// `norm · Σ_{t=Δ}^{T−1} Σ_e w_e ‖q_j(t) q_j(t−Δ)* − q_i(t) q_i(t−Δ)*‖₂` (unit quaternions).
+pub fn relative_rotation(
+    track: &Track,
+    edges: EdgeSet,
+    delta: usize,
+    norm: f64,
+    scale: f64,
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+) -> f64 {
+    assert!(delta >= 1, "rotation offset Δ ≥ 1");
+    let m = track.m;
+    let want_e = g_edges.is_some();
+    let ne = edges.len();
+    let parts = frame_windows(g, track.frames, delta, 0, |ts, base, rows| {
+        let mut part = Partial {
+            value: 0.0,
+            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
+            g_rest: Vec::new(),
+        };
+        for t in ts {
+            let (t0, t1) = (t - delta, t);
+            let rel = |k: usize| {
+                let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
+                (a, b, q4::mul(a, q4::conj(b)))
+            };
+            let mut e = 0;
+            while e < ne {
+                let i = edges.src[e] as usize;
+                let (ai, bi, qi) = rel(i);
+                let mut g_qi = [0.0; 4];
+                while e < ne && edges.src[e] as usize == i {
+                    let j = edges.dst[e] as usize;
+                    let (aj, bj, qj) = rel(j);
+                    let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
+                    let len = q4::norm(r);
+                    let w = edges.w[e];
+                    part.value += norm * w * len;
+                    if want_e {
+                        part.g_w[e] += scale * norm * len;
+                    }
+                    if len > 0.0 {
+                        let k = scale * norm * w / len;
+                        let gr = r.map(|x| x * k);
+                        let (ga, gbc) = q4::mul_vjp(aj, q4::conj(bj), gr);
+                        add_to(&mut rows[(t1 - base) * m + j], 7, &ga);
+                        add_to(&mut rows[(t0 - base) * m + j], 7, &q4::conj(gbc));
+                        for c in 0..4 {
+                            g_qi[c] -= gr[c];
+                        }
+                    }
+                    e += 1;
+                }
+                let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
+                add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
+                add_to(&mut rows[(t0 - base) * m + i], 7, &q4::conj(gbc));
+            }
+        }
+        part
+    });
+    reduce(parts, g_edges)
+}
+
+/// Isometry: `norm · Σ_{t=0}^{T−1} Σ_e w_e |D_e − ‖d_e(t)‖|` with rest lengths `rest` `[E]`.
+pub fn isometry(
+    track: &Track,
+    edges: EdgeSet,
+    rest: &[f64],
+    norm: f64,
+    scale: f64,
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+) -> f64 {
+    assert_eq!(rest.len(), edges.len(), "one rest length per edge");
+    let m = track.m;
+    let want_e = g_edges.is_some();
+    let ne = edges.len();
+    let parts = frame_windows(g, track.frames, 0, 0, |ts, base, rows| {
+        let mut part = Partial {
+            value: 0.0,
+            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
+            g_rest: if want_e { vec![0.0; ne] } else { Vec::new() },
+        };
+        for t in ts {
+            for e in 0..ne {
+                let (i, j) = (edges.src[e] as usize, edges.dst[e] as usize);
+                let d = sub(track.p[track.at(t, j)], track.p[track.at(t, i)]);
+                let len = norm3(d);
+                let r = len - rest[e];
+                let w = edges.w[e];
+                part.value += norm * w * r.abs();
+                let s = if r > 0.0 {
+                    1.0
+                } else if r < 0.0 {
+                    -1.0
+                } else {
+                    0.0
+                };
+                if want_e {
+                    part.g_w[e] += scale * norm * r.abs();
+                    part.g_rest[e] -= scale * norm * w * s;
+                }
+                if len > 0.0 && s != 0.0 {
+                    let k = scale * norm * w * s / len;
+                    let gd = d.map(|x| x * k);
+                    add_to(&mut rows[(t - base) * m + j], 0, &gd);
+                    add_to(&mut rows[(t - base) * m + i], 0, &gd.map(|x| -x));
+                }
+            }
+        }
+        part
+    });
+    reduce(parts, g_edges)
+}
+
+#[inline]
+fn sign(x: f64) -> f64 {
+    if x > 0.0 {
+        1.0
+    } else if x < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
+/// Relative rotation `a ⊗ b*` of unit quaternions, standardised to w ≥ 0, and that sign.
+#[inline]
+fn rel_std(a: Q, b: Q) -> (Q, f64) {
+    let r = q4::mul(a, q4::conj(b));
+    if r[0] < 0.0 { (r.map(|x| -x), -1.0) } else { (r, 1.0) }
+}
+
+/// Velocity over all Gaussians of the track; value unscaled, `scale ·` gradient added.
+/// Paper: `Σ_{t≥1} Σ_i ‖p_{t−1} − p_t‖₁ + ‖std(q_{t−1} q_t*) − 1‖₁`; release:
+/// `mean((p_t − p_{t+1})²) + mean((q_t − q_{t+1})²)`, means over (T−1)·m·3 and (T−1)·m·4.
+pub fn velocity(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGrad) -> f64 {
+    let (nt, m) = (track.frames, track.m);
+    if nt < 2 || m == 0 {
+        return 0.0;
+    }
+    let cnt = ((nt - 1) * m) as f64;
+    let parts = frame_windows(g, nt, 1, 0, |ts, base, rows| {
+        let mut v = 0.0;
+        for t in ts {
+            for k in 0..m {
+                let (i0, i1) = (track.at(t - 1, k), track.at(t, k));
+                let (r0, r1) = ((t - 1 - base) * m + k, (t - base) * m + k);
+                match form {
+                    MotionForm::Paper => {
+                        let d = sub(track.p[i0], track.p[i1]);
+                        v += d.iter().map(|x| x.abs()).sum::<f64>();
+                        let gd = d.map(|x| scale * sign(x));
+                        add_to(&mut rows[r0], 0, &gd);
+                        add_to(&mut rows[r1], 0, &gd.map(|x| -x));
+                        let (a, b) = (track.u[i0], track.u[i1]);
+                        let (r, s) = rel_std(a, b);
+                        let dev = [r[0] - 1.0, r[1], r[2], r[3]];
+                        v += dev.iter().map(|x| x.abs()).sum::<f64>();
+                        let gr = dev.map(|x| scale * s * sign(x));
+                        let (ga, gbc) = q4::mul_vjp(a, q4::conj(b), gr);
+                        add_to(&mut rows[r0], 7, &ga);
+                        add_to(&mut rows[r1], 7, &q4::conj(gbc));
+                    }
+                    MotionForm::Release => {
+                        let d = sub(track.p[i1], track.p[i0]);
+                        let dq = [0, 1, 2, 3].map(|c| track.q[i1][c] - track.q[i0][c]);
+                        let (np, nq) = (cnt * 3.0, cnt * 4.0);
+                        v += d.iter().map(|x| x * x).sum::<f64>() / np;
+                        v += dq.iter().map(|x| x * x).sum::<f64>() / nq;
+                        let gd = d.map(|x| scale * 2.0 * x / np);
+                        let gq = dq.map(|x| scale * 2.0 * x / nq);
+                        add_to(&mut rows[r1], 0, &gd);
+                        add_to(&mut rows[r0], 0, &gd.map(|x| -x));
+                        add_to(&mut rows[r1], 3, &gq);
+                        add_to(&mut rows[r0], 3, &gq.map(|x| -x));
+                    }
+                }
+            }
+        }
+        v
+    });
+    parts.into_iter().sum()
+}
+
+/// Acceleration over all Gaussians of the track; value unscaled, `scale ·` gradient added.
+/// Paper: `Σ_{t≥2} Σ_i ‖p_{t−2} − 2p_{t−1} + p_t‖₁ + ‖std(r₁ r₂*) − 1‖₁` with
+/// r₁ = q_{t−2} q_{t−1}*, r₂ = q_{t−1} q_t*; release: `mean ‖2p_{t−1} − p_{t−2} − p_t‖ +
+/// mean ‖2q_{t−1} − q_{t−2} − q_t‖` over (T−2)·m (raw q).
+pub fn acceleration(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGrad) -> f64 {
+    let (nt, m) = (track.frames, track.m);
+    if nt < 3 || m == 0 {
+        return 0.0;
+    }
+    let cnt = ((nt - 2) * m) as f64;
+    let parts = frame_windows(g, nt, 2, 0, |ts, base, rows| {
+        let mut v = 0.0;
+        for t in ts {
+            for k in 0..m {
+                let ix = [track.at(t - 2, k), track.at(t - 1, k), track.at(t, k)];
+                let rw = [(t - 2 - base) * m + k, (t - 1 - base) * m + k, (t - base) * m + k];
+                let (p0, p1, p2) = (track.p[ix[0]], track.p[ix[1]], track.p[ix[2]]);
+                let d = [0, 1, 2].map(|c| p0[c] - 2.0 * p1[c] + p2[c]);
+                match form {
+                    MotionForm::Paper => {
+                        v += d.iter().map(|x| x.abs()).sum::<f64>();
+                        let gd = d.map(|x| scale * sign(x));
+                        add_to(&mut rows[rw[0]], 0, &gd);
+                        add_to(&mut rows[rw[1]], 0, &gd.map(|x| -2.0 * x));
+                        add_to(&mut rows[rw[2]], 0, &gd);
+                        let (u0, u1, u2) = (track.u[ix[0]], track.u[ix[1]], track.u[ix[2]]);
+                        let r1 = q4::mul(u0, q4::conj(u1));
+                        let r2 = q4::mul(u1, q4::conj(u2));
+                        let (r, s) = rel_std(r1, r2);
+                        let dev = [r[0] - 1.0, r[1], r[2], r[3]];
+                        v += dev.iter().map(|x| x.abs()).sum::<f64>();
+                        let gr = dev.map(|x| scale * s * sign(x));
+                        let (g_r1, g_r2c) = q4::mul_vjp(r1, q4::conj(r2), gr);
+                        let g_r2 = q4::conj(g_r2c);
+                        let (g_u0, g_u1c) = q4::mul_vjp(u0, q4::conj(u1), g_r1);
+                        let (g_u1, g_u2c) = q4::mul_vjp(u1, q4::conj(u2), g_r2);
+                        let g_u1c = q4::conj(g_u1c);
+                        add_to(&mut rows[rw[0]], 7, &g_u0);
+                        add_to(&mut rows[rw[1]], 7, &[0, 1, 2, 3].map(|c| g_u1[c] + g_u1c[c]));
+                        add_to(&mut rows[rw[2]], 7, &q4::conj(g_u2c));
+                    }
+                    MotionForm::Release => {
+                        let (q0, q1, q2) = (track.q[ix[0]], track.q[ix[1]], track.q[ix[2]]);
+                        let dq = [0, 1, 2, 3].map(|c| q0[c] - 2.0 * q1[c] + q2[c]);
+                        let (lp, lq) = (norm3(d), q4::norm(dq));
+                        v += (lp + lq) / cnt;
+                        if lp > 0.0 {
+                            let gd = d.map(|x| scale * x / (lp * cnt));
+                            add_to(&mut rows[rw[0]], 0, &gd);
+                            add_to(&mut rows[rw[1]], 0, &gd.map(|x| -2.0 * x));
+                            add_to(&mut rows[rw[2]], 0, &gd);
+                        }
+                        if lq > 0.0 {
+                            let gq = dq.map(|x| scale * x / (lq * cnt));
+                            add_to(&mut rows[rw[0]], 3, &gq);
+                            add_to(&mut rows[rw[1]], 3, &gq.map(|x| -2.0 * x));
+                            add_to(&mut rows[rw[2]], 3, &gq);
+                        }
+                    }
+                }
+            }
+        }
+        v
+    });
+    parts.into_iter().sum()
+}
+
+/// The vanilla recipe's motion-locality graph: each of the `positions` `[m, 3]` (the dynamic
+/// Gaussians at the canonical frame) linked to its k nearest others, uniform weight 1/k, and
+/// rest lengths at that frame. Edges are grouped by source, nearest first; compact indices.
+pub fn knn_edges(positions: &[[f32; 3]], k: usize) -> (Vec<u32>, Vec<u32>, Vec<f64>, Vec<f64>) {
+    use kiddo::{ImmutableKdTree, SquaredEuclidean};
+    let m = positions.len();
+    let k = k.min(m.saturating_sub(1));
+    let (mut src, mut dst, mut rest) = (Vec::new(), Vec::new(), Vec::new());
+    let Some(kk) = std::num::NonZero::new(k + 1) else {
+        return (src, dst, Vec::new(), rest);
+    };
+    let Ok(tree) = ImmutableKdTree::<f32, 3>::new_from_slice(positions) else {
+        return (src, dst, Vec::new(), rest);
+    };
+    let lists: Vec<Vec<u32>> = positions
+        .par_iter()
+        .enumerate()
+        .map(|(i, q)| {
+            let res = tree.query(q).nearest_n::<SquaredEuclidean<f32>>(kk).execute();
+            res.iter().map(|r| r.item).filter(|&j| j as usize != i).take(k).collect()
+        })
+        .collect();
+    for (i, list) in lists.iter().enumerate() {
+        for &j in list {
+            src.push(i as u32);
+            dst.push(j);
+            rest.push(norm3(sub(q4::v64(positions[j as usize]), q4::v64(positions[i]))));
+        }
+    }
+    let w = vec![1.0 / k.max(1) as f64; src.len()];
+    (src, dst, w, rest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::quat64::tests::TestRng;
+
+    /// A random track of `m` Gaussians over `t` frames and a kNN-like edge list grouped by
+    /// source.
+    fn case(seed: u64, t: usize, m: usize) -> (Track, Vec<u32>, Vec<u32>, Vec<f64>, Vec<f64>) {
+        let mut rng = TestRng(seed);
+        let p = (0..t * m).map(|_| rng.v()).collect();
+        let q = (0..t * m).map(|_| rng.q().map(|x| x + 0.6)).collect();
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        for i in 0..m as u32 {
+            for d in 1..3u32 {
+                src.push(i);
+                dst.push((i + d) % m as u32);
+            }
+        }
+        let w = src.iter().map(|_| 0.5 + 0.4 * rng.next()).collect();
+        let rest = src.iter().map(|_| 1.0 + 0.3 * rng.next()).collect();
+        (Track::new(t, m, p, q), src, dst, w, rest)
+    }
+
+    /// Every term at once: value and gradients (positions, raw rotations, w, rest).
+    fn all_terms(
+        tr: &Track,
+        src: &[u32],
+        dst: &[u32],
+        w: &[f64],
+        rest: &[f64],
+    ) -> (f64, TrackGrad, EdgeGrad) {
+        let e = EdgeSet { src, dst, w };
+        let mut g = TrackGrad::zeros(tr);
+        let mut ge = EdgeGrad::zeros(src.len());
+        let mut v = rigidity(tr, e, 1, 0.3, 1.0, &mut g, Some(&mut ge));
+        v += 0.7 * rigidity(tr, e, 3, 0.2, 0.7, &mut g, Some(&mut ge));
+        v += relative_rotation(tr, e, 2, 0.5, 1.0, &mut g, Some(&mut ge));
+        v += isometry(tr, e, rest, 0.4, 1.0, &mut g, Some(&mut ge));
+        for form in [MotionForm::Paper, MotionForm::Release] {
+            v += velocity(tr, form, 1.0, &mut g);
+            v += acceleration(tr, form, 1.0, &mut g);
+        }
+        (v, g, ge)
+    }
+
+    #[test]
+    fn every_motion_term_matches_finite_differences() {
+        let (t, m) = (7, 5);
+        let (tr, src, dst, w, rest) = case(5, t, m);
+        let (_, g, ge) = all_terms(&tr, &src, &dst, &w, &rest);
+        let h = 1e-6;
+        let mut fails = Vec::new();
+        let mut worst = 0.0f64;
+        let mut check = |what: String, analytic: f64, f: &dyn Fn(f64) -> f64| {
+            let fd = (f(h) - f(-h)) / (2.0 * h);
+            let err = (analytic - fd).abs();
+            worst = worst.max(err);
+            if err > 1e-5 * (1.0 + fd.abs()) {
+                fails.push(format!("{what}: analytic {analytic} fd {fd}"));
+            }
+        };
+        for f in 0..t {
+            for k in 0..m {
+                let idx = f * m + k;
+                for c in 0..3 {
+                    check(format!("p[{f},{k},{c}]"), g.position(f, k)[c], &|d| {
+                        let mut p = tr.p.clone();
+                        p[idx][c] += d;
+                        all_terms(&Track::new(t, m, p, tr.q.clone()), &src, &dst, &w, &rest).0
+                    });
+                }
+                for c in 0..4 {
+                    check(format!("q[{f},{k},{c}]"), g.rotation(&tr, f, k)[c], &|d| {
+                        let mut q = tr.q.clone();
+                        q[idx][c] += d;
+                        all_terms(&Track::new(t, m, tr.p.clone(), q), &src, &dst, &w, &rest).0
+                    });
+                }
+            }
+        }
+        for e in 0..src.len() {
+            check(format!("w[{e}]"), ge.w[e], &|d| {
+                let mut w2 = w.clone();
+                w2[e] += d;
+                all_terms(&tr, &src, &dst, &w2, &rest).0
+            });
+            check(format!("rest[{e}]"), ge.rest[e], &|d| {
+                let mut r2 = rest.clone();
+                r2[e] += d;
+                all_terms(&tr, &src, &dst, &w, &r2).0
+            });
+        }
+        eprintln!("motion terms: max |analytic − FD| = {worst:.2e}");
+        assert!(fails.is_empty(), "{}", fails.join("\n"));
+    }
+
+    #[test]
+    fn knn_edges_link_each_point_to_its_nearest_others() {
+        let pts: Vec<[f32; 3]> = (0..10).map(|i| [i as f32 * i as f32, 0.0, 0.0]).collect();
+        let (src, dst, w, rest) = knn_edges(&pts, 2);
+        assert_eq!(src.len(), 20);
+        assert_eq!((src[0], dst[0], dst[1]), (0, 1, 2));
+        assert_eq!((src[10], dst[10], dst[11]), (5, 4, 6));
+        assert!((w[0] - 0.5).abs() < 1e-12 && (rest[10] - 9.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn motion_terms_do_not_depend_on_the_thread_count() {
+        let (tr, src, dst, w, rest) = case(9, 40, 30);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let (v, g, ge) = all_terms(&tr, &src, &dst, &w, &rest);
+                (
+                    v.to_bits(),
+                    g.rows.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                    ge.w,
+                )
+            })
+        };
+        assert_eq!(run(1), run(3));
+    }
+}

@@ -1,0 +1,145 @@
+//! The recipe's non-image terms, rebuilt whenever density control changes the Gaussians:
+//! - vanilla: the base models' motion locality (paper App. A.2) among all dynamic Gaussians,
+//!   kNN isometry + rigidity (edges and rest lengths at frame 0, weights 1/k) plus velocity
+//!   and acceleration, λ_iso = λ_rigid = 1, λ_vel = λ_acc = 0.01, App. A.2's forms;
+//! - usplat4d: [`GraphObjective`] (L_key + L_non-key) on the graph of the trained Gaussians.
+//!   Its p° and u of a Gaussian are those of the input Gaussian it descends from
+//!   ([`TrainState::origin`]); a new Gaussian is a non-key with its origin's t̂ and edges.
+//!   At a density pass the objective is rebuilt with the learned key-key weights; the
+//!   non-keys' source poses and the learned rest lengths start again from their
+//!   initialisation (a simplification of the release's `densify_params`).
+
+use std::collections::HashMap;
+
+use glam::DMat3;
+
+use super::graph_loss::{GraphObjective, GraphSettings};
+use super::motion::{self, EdgeSet, MotionForm, Track, TrackGrad};
+use super::poses::{PoseGrads, Poses};
+use super::state::TrainState;
+use super::train::trained_graph;
+use crate::tables::edges::Edges;
+use crate::tables::key_nodes::KeyNodes;
+
+/// What the graph objective is built from (fixed for a run).
+pub struct GraphSource {
+    /// The input key-node table.
+    pub keys: KeyNodes,
+    /// The input edges table.
+    pub edges: Edges,
+    /// Input poses p° by `gaussian_id`: row of each id in `initial`.
+    pub row: HashMap<u32, usize>,
+    /// The input model's poses `[T, N_in]`.
+    pub initial: Poses,
+    /// u `[T, N_in]` in `initial`'s order (φ = 1e8 where the table has no value).
+    pub u: Vec<f32>,
+    /// R_cw of each frame's training camera `[T]`.
+    pub rot_cw: Vec<DMat3>,
+}
+
+/// The vanilla recipe's kNN motion graph over the dynamic Gaussians.
+pub struct KnnMotion {
+    nodes: Vec<u32>,
+    src: Vec<u32>,
+    dst: Vec<u32>,
+    w: Vec<f64>,
+    rest: Vec<f64>,
+}
+
+impl KnnMotion {
+    /// kNN edges among the dynamic Gaussians of `state` at frame 0.
+    pub fn new(state: &TrainState, k: usize) -> Self {
+        let nodes: Vec<u32> =
+            (0..state.n() as u32).filter(|&i| state.dynamic[i as usize]).collect();
+        let p0: Vec<[f32; 3]> = nodes.iter().map(|&i| state.positions(0)[i as usize]).collect();
+        let (src, dst, w, rest) = motion::knn_edges(&p0, k);
+        // stored as f32 in checkpoints: round now so a resumed run sees the same values
+        let r32 = |v: Vec<f64>| v.into_iter().map(|x| x as f32 as f64).collect();
+        KnnMotion { nodes, src, dst, w: r32(w), rest: r32(rest) }
+    }
+
+    /// The graph as named tensors for a checkpoint (indices are exact in f32 below 2²⁴),
+    /// since a resumed run's current positions would give other neighbours.
+    pub fn to_tensors(&self) -> Vec<(String, Vec<f32>)> {
+        let f = |v: &[u32]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        let g = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        vec![
+            ("knn_nodes".into(), f(&self.nodes)),
+            ("knn_src".into(), f(&self.src)),
+            ("knn_dst".into(), f(&self.dst)),
+            ("knn_w".into(), g(&self.w)),
+            ("knn_rest".into(), self.rest.iter().map(|&x| x as f32).collect()),
+        ]
+    }
+
+    /// The graph saved by [`Self::to_tensors`]; `None` when the tensors are not one.
+    pub fn from_tensors(t: &[(String, Vec<f32>)]) -> Option<Self> {
+        let get = |name: &str| t.iter().find(|(k, _)| k == name).map(|(_, v)| v);
+        let u = |v: &Vec<f32>| v.iter().map(|&x| x as u32).collect::<Vec<u32>>();
+        let d = |v: &Vec<f32>| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
+        Some(KnnMotion {
+            nodes: u(get("knn_nodes")?),
+            src: u(get("knn_src")?),
+            dst: u(get("knn_dst")?),
+            w: d(get("knn_w")?),
+            rest: d(get("knn_rest")?),
+        })
+    }
+
+    /// Evaluate on `poses`, add gradients, return the weighted terms.
+    pub fn evaluate(&self, poses: &Poses, grads: &mut PoseGrads) -> Vec<(&'static str, f64)> {
+        if self.nodes.is_empty() {
+            return Vec::new();
+        }
+        let track = Track::gather(poses, &self.nodes);
+        let mut tg = TrackGrad::zeros(&track);
+        let es = EdgeSet { src: &self.src, dst: &self.dst, w: &self.w };
+        let norm = 1.0 / self.src.len().max(1) as f64;
+        let iso = motion::isometry(&track, es, &self.rest, norm, 1.0, &mut tg, None);
+        let rigid = motion::rigidity(&track, es, 1, norm, 1.0, &mut tg, None);
+        let vel = 0.01 * motion::velocity(&track, MotionForm::Paper, 0.01, &mut tg);
+        let acc = 0.01 * motion::acceleration(&track, MotionForm::Paper, 0.01, &mut tg);
+        tg.scatter(&track, &self.nodes, grads);
+        vec![
+            ("knn_isometry", iso),
+            ("knn_rigidity", rigid),
+            ("velocity", vel),
+            ("acceleration", acc),
+        ]
+    }
+}
+
+/// The usplat4d objective for the current Gaussians of `state`, the graph given by `edges`
+/// (the input table at the start, the learned one at a density pass).
+pub fn build_graph(
+    src: &GraphSource,
+    state: &TrainState,
+    edges: &Edges,
+    settings: &GraphSettings,
+) -> anyhow::Result<GraphObjective> {
+    let (keys, edges) = trained_graph(state, &src.keys, edges);
+    let (nt, n, n_in) = (state.frames(), state.n(), src.row.len());
+    let mut initial = Poses {
+        frames: nt,
+        n,
+        position: Vec::with_capacity(nt * n),
+        rotation: Vec::with_capacity(nt * n),
+    };
+    let mut u = Vec::with_capacity(nt * n);
+    let rows: Vec<usize> = state.origin.iter().map(|o| src.row[o]).collect();
+    for t in 0..nt {
+        initial.position.extend(rows.iter().map(|&r| src.initial.position[t * n_in + r]));
+        initial.rotation.extend(rows.iter().map(|&r| src.initial.rotation[t * n_in + r]));
+        u.extend(rows.iter().map(|&r| src.u[t * n_in + r]));
+    }
+    GraphObjective::from_tables(
+        &initial,
+        &state.ids,
+        &keys,
+        &edges,
+        &u,
+        &src.rot_cw,
+        settings.clone(),
+    )
+    .map_err(|e| anyhow::anyhow!("graph objective: {e}"))
+}

@@ -1,0 +1,261 @@
+//! The training state: what `optimize` trains (issue 11, "What is trained"). Per-frame
+//! poses of every Gaussian ([`Poses`]; static Gaussians keep one pose, tied across frames by
+//! summing their gradients over frames), log-scales, opacity logits and colour/SH. Tables
+//! stay linear: [`TrainState::to_gaussians`] and [`TrainState::frame_state`] convert back.
+
+use super::poses::{PoseGrads, Poses};
+use crate::model::{FrameState, Gaussians, Model};
+
+/// Smallest opacity and scale kept when going to logit/log space.
+const OPACITY_EPS: f32 = 1e-6;
+const SCALE_MIN: f32 = 1e-12;
+
+/// Logistic function.
+pub fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Inverse of [`sigmoid`] on [ε, 1 − ε].
+pub fn logit(p: f32) -> f32 {
+    let p = p.clamp(OPACITY_EPS, 1.0 - OPACITY_EPS);
+    (p / (1.0 - p)).ln()
+}
+
+/// Everything optimised, `[N]` arrays in model order (and the poses `[T, N]`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainState {
+    /// `gaussian_id` of each Gaussian.
+    pub ids: Vec<u32>,
+    /// Dynamic (true) or static background (false, pose tied across frames).
+    pub dynamic: Vec<bool>,
+    /// `gaussian_id` of the input Gaussian each one descends from (itself, or the parent
+    /// that density control cloned or split).
+    pub origin: Vec<u32>,
+    /// Per-frame poses `[T, N]`.
+    pub poses: Poses,
+    /// Log of the linear scales `[N, 3]`.
+    pub log_scale: Vec<[f32; 3]>,
+    /// Opacity logits `[N]`.
+    pub logit_opacity: Vec<f32>,
+    /// Degree-0 colour `[N, 3]`.
+    pub color: Vec<[f32; 3]>,
+    /// SH degree.
+    pub sh_degree: u8,
+    /// Higher SH coefficients `[N, K, 3]` flattened.
+    pub sh_rest: Vec<f32>,
+}
+
+/// Gradients w.r.t. a [`TrainState`], same layout.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StateGrads {
+    /// Poses.
+    pub poses: PoseGrads,
+    /// dL/d log-scale `[N, 3]`.
+    pub log_scale: Vec<[f32; 3]>,
+    /// dL/d opacity logit `[N]`.
+    pub logit_opacity: Vec<f32>,
+    /// dL/d colour `[N, 3]`.
+    pub color: Vec<[f32; 3]>,
+    /// dL/d SH rest `[N, K, 3]`.
+    pub sh_rest: Vec<f32>,
+}
+
+impl StateGrads {
+    /// Zero gradients for `s`.
+    pub fn zeros(s: &TrainState) -> Self {
+        StateGrads {
+            poses: PoseGrads::zeros(s.poses.frames, s.n()),
+            log_scale: vec![[0.0; 3]; s.n()],
+            logit_opacity: vec![0.0; s.n()],
+            color: vec![[0.0; 3]; s.n()],
+            sh_rest: vec![0.0; s.sh_rest.len()],
+        }
+    }
+}
+
+impl TrainState {
+    /// Number of Gaussians N.
+    pub fn n(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// Number of frames T.
+    pub fn frames(&self) -> usize {
+        self.poses.frames
+    }
+
+    /// Read every frame of `model`, keeping the Gaussians with `keep[i]` (all when `None`).
+    pub fn from_model(model: &Model, keep: Option<&[bool]>) -> crate::tables::Result<Self> {
+        let g = &model.gaussians;
+        let rows: Vec<usize> = (0..g.len()).filter(|&i| keep.is_none_or(|k| k[i])).collect();
+        let t_count = model.num_frames();
+        let n = rows.len();
+        let mut poses = Poses {
+            frames: t_count,
+            n,
+            position: Vec::with_capacity(t_count * n),
+            rotation: Vec::with_capacity(t_count * n),
+        };
+        for t in 0..t_count {
+            let f = model.frame(t)?;
+            poses.position.extend(rows.iter().map(|&i| f.position[i]));
+            poses.rotation.extend(rows.iter().map(|&i| f.rotation[i]));
+        }
+        let k3 = g.sh_rest_len();
+        Ok(TrainState {
+            ids: rows.iter().map(|&i| g.id[i]).collect(),
+            origin: rows.iter().map(|&i| g.id[i]).collect(),
+            dynamic: rows.iter().map(|&i| g.dynamic[i]).collect(),
+            poses,
+            log_scale: rows.iter().map(|&i| g.scale[i].map(|s| s.max(SCALE_MIN).ln())).collect(),
+            logit_opacity: rows.iter().map(|&i| logit(g.opacity[i])).collect(),
+            color: rows.iter().map(|&i| g.color[i]).collect(),
+            sh_degree: g.sh_degree,
+            sh_rest: rows
+                .iter()
+                .flat_map(|&i| g.sh_rest[i * k3..(i + 1) * k3].iter().copied())
+                .collect(),
+        })
+    }
+
+    /// Linear scales `[N, 3]`.
+    pub fn scales(&self) -> Vec<[f32; 3]> {
+        self.log_scale.iter().map(|s| s.map(f32::exp)).collect()
+    }
+
+    /// Opacities `[N]` in (0, 1).
+    pub fn opacities(&self) -> Vec<f32> {
+        self.logit_opacity.iter().map(|&l| sigmoid(l)).collect()
+    }
+
+    /// Positions of frame `t` `[N, 3]`.
+    pub fn positions(&self, t: usize) -> &[[f32; 3]] {
+        &self.poses.position[t * self.n()..(t + 1) * self.n()]
+    }
+
+    /// Rotations of frame `t` `[N, 4]` (unnormalised).
+    pub fn rotations(&self, t: usize) -> &[[f32; 4]] {
+        &self.poses.rotation[t * self.n()..(t + 1) * self.n()]
+    }
+
+    /// The static attributes in table form (linear scale, opacity in [0, 1]).
+    pub fn to_gaussians(&self) -> Gaussians {
+        Gaussians {
+            id: self.ids.clone(),
+            dynamic: self.dynamic.clone(),
+            scale: self.scales(),
+            opacity: self.opacities(),
+            color: self.color.clone(),
+            sh_degree: self.sh_degree,
+            sh_rest: self.sh_rest.clone(),
+        }
+    }
+
+    /// Frame `t` in table form (normalised quaternions; a zero quaternion becomes identity).
+    pub fn frame_state(&self, t: usize) -> FrameState {
+        FrameState {
+            frame: t as u32,
+            position: self.positions(t).to_vec(),
+            rotation: self.rotations(t).iter().map(|q| normalized(*q)).collect(),
+        }
+    }
+
+    /// Tie static Gaussians: replace each static Gaussian's per-frame pose gradient by its
+    /// sum over frames, so every frame's copy takes the same Adam step and stays equal.
+    pub fn tie_static(&self, g: &mut PoseGrads) {
+        let (n, nt) = (self.n(), self.frames());
+        for i in (0..n).filter(|&i| !self.dynamic[i]) {
+            let mut p = [0.0f32; 3];
+            let mut q = [0.0f32; 4];
+            for t in 0..nt {
+                for k in 0..3 {
+                    p[k] += g.position[t * n + i][k];
+                }
+                for k in 0..4 {
+                    q[k] += g.rotation[t * n + i][k];
+                }
+            }
+            for t in 0..nt {
+                g.position[t * n + i] = p;
+                g.rotation[t * n + i] = q;
+            }
+        }
+    }
+
+    /// A new state made of rows `rows` (indices into this state, repeats allowed), the
+    /// Gaussian at position j taking id `ids[j]`: pruning and densification.
+    pub fn gather(&self, rows: &[usize], ids: Vec<u32>) -> TrainState {
+        let (n, nt) = (self.n(), self.frames());
+        let k3 = self.sh_rest.len() / n.max(1);
+        let mut poses = Poses {
+            frames: nt,
+            n: rows.len(),
+            position: Vec::with_capacity(nt * rows.len()),
+            rotation: Vec::with_capacity(nt * rows.len()),
+        };
+        for t in 0..nt {
+            poses.position.extend(rows.iter().map(|&i| self.poses.position[t * n + i]));
+            poses.rotation.extend(rows.iter().map(|&i| self.poses.rotation[t * n + i]));
+        }
+        TrainState {
+            ids,
+            dynamic: rows.iter().map(|&i| self.dynamic[i]).collect(),
+            origin: rows.iter().map(|&i| self.origin[i]).collect(),
+            poses,
+            log_scale: rows.iter().map(|&i| self.log_scale[i]).collect(),
+            logit_opacity: rows.iter().map(|&i| self.logit_opacity[i]).collect(),
+            color: rows.iter().map(|&i| self.color[i]).collect(),
+            sh_degree: self.sh_degree,
+            sh_rest: rows
+                .iter()
+                .flat_map(|&i| self.sh_rest[i * k3..(i + 1) * k3].iter().copied())
+                .collect(),
+        }
+    }
+}
+
+/// `q / |q|`, identity for a zero or non-finite quaternion.
+pub fn normalized(q: [f32; 4]) -> [f32; 4] {
+    let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+    if n > 0.0 && n.is_finite() { q.map(|v| v / n) } else { [1.0, 0.0, 0.0, 0.0] }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state() -> TrainState {
+        TrainState {
+            ids: vec![5, 7],
+            dynamic: vec![true, false],
+            origin: vec![5, 7],
+            poses: Poses {
+                frames: 2,
+                n: 2,
+                position: vec![[0.0; 3], [1.0; 3], [0.5; 3], [1.0; 3]],
+                rotation: vec![[1.0, 0.0, 0.0, 0.0]; 4],
+            },
+            log_scale: vec![[0.1f32.ln(); 3]; 2],
+            logit_opacity: vec![logit(0.3), logit(0.9)],
+            color: vec![[0.2; 3], [0.4; 3]],
+            sh_degree: 0,
+            sh_rest: vec![],
+        }
+    }
+
+    #[test]
+    fn linear_tables_and_tied_statics() {
+        let s = state();
+        let g = s.to_gaussians();
+        assert!((g.opacity[0] - 0.3).abs() < 1e-6 && (g.scale[1][2] - 0.1).abs() < 1e-7);
+        let mut pg = PoseGrads {
+            position: vec![[1.0; 3], [2.0; 3], [3.0; 3], [4.0; 3]],
+            rotation: vec![[0.0; 4]; 4],
+        };
+        s.tie_static(&mut pg);
+        assert_eq!(pg.position, vec![[1.0; 3], [6.0; 3], [3.0; 3], [6.0; 3]]);
+        let d = s.gather(&[1, 0, 0], vec![7, 5, 8]);
+        assert_eq!(d.positions(1), &[[1.0; 3], [0.5; 3], [0.5; 3]]);
+        assert_eq!(d.dynamic, vec![false, true, true]);
+    }
+}

@@ -1,0 +1,270 @@
+//! One optimisation step's image part: for each batch frame, render the training view with
+//! the CPU [`DifferentiableRenderer`], take L_rgb against that frame's ground truth (paper
+//! App. A.3: colour, mask, depth, and the 2D tracks to the next batch frame when the scene
+//! has them), run the backward pass and chain the Gaussians' gradients to the trained
+//! parameters (per-frame pose, log-scale, opacity logit, colour/SH). The batch's loss is the
+//! mean over its frames. Frames are processed one after the other (the renderer is parallel
+//! inside), so gradients are summed in batch order whatever the thread count.
+//!
+//! It also accumulates, per Gaussian, the norm of the screen-space position gradient in NDC
+//! units (pixels · W/2, H/2, per view, as 3DGS and gsplat do) that density control uses.
+
+use std::path::Path;
+
+use super::image_loss::track::{
+    Track, add_target_position_grads, interval_weight, tracks_between, write_target_features,
+};
+use super::image_loss::{FrameTargets, ImageLossWeights, TrackForm, TrackSet, rgb_loss};
+use super::state::{StateGrads, TrainState, sigmoid};
+use crate::render::{
+    ColorSource, CpuRenderer, Cutoff, DifferentiableRenderer, RenderCamera, RenderSettings,
+    ShFrame, SplatInputs,
+};
+use crate::scene::{Camera, Scene};
+use crate::tables::tracks_2d::Tracks2dReader;
+
+/// The training view of each frame and where its ground truth lives.
+pub struct TrainingViews {
+    /// `[T]` the scene's training cameras, index t is frame t.
+    cameras: Vec<Camera>,
+    /// The scene directory the cameras' paths are relative to.
+    scene: Scene,
+    /// The scene's 2D tracks in the training camera, if it has them.
+    tracks: Option<Tracks2dReader>,
+}
+
+/// One training frame's ground truth, `[H, W]` images.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameTruth {
+    /// `[H, W, 3]` colour over the render background.
+    pub rgb: Vec<f32>,
+    /// `[H, W]` foreground mask in [0, 1], when the camera has one.
+    pub mask: Option<Vec<f32>>,
+    /// `[H, W]` prior z-depth (0 = invalid), when the camera has one.
+    pub depth: Option<Vec<f32>>,
+}
+
+impl TrainingViews {
+    /// The training views of `scene` (T must equal the model's frame count) and its
+    /// `tracks_2d.parquet` when present.
+    pub fn new(scene: &Scene) -> anyhow::Result<Self> {
+        let tracks_path = scene.dir.join("tracks_2d.parquet");
+        let tracks =
+            if tracks_path.exists() { Some(Tracks2dReader::open(&tracks_path)?) } else { None };
+        let cameras: Vec<Camera> = scene.train_by_frame().into_iter().cloned().collect();
+        if let Some(t) = &tracks
+            && t.num_frames() != cameras.len()
+        {
+            anyhow::bail!(
+                "{}: {} frames, the scene has {} training frames",
+                tracks_path.display(),
+                t.num_frames(),
+                cameras.len()
+            );
+        }
+        Ok(TrainingViews { cameras, scene: scene.clone(), tracks })
+    }
+
+    /// Number of frames T.
+    pub fn len(&self) -> usize {
+        self.cameras.len()
+    }
+
+    /// Whether there are no frames.
+    pub fn is_empty(&self) -> bool {
+        self.cameras.is_empty()
+    }
+
+    /// The camera that renders training frame `t`: the scene's training camera of that frame.
+    /// (A model that carries its own cameras would supply them here.)
+    pub fn training_camera(&self, t: usize) -> RenderCamera {
+        RenderCamera::from(&self.cameras[t])
+    }
+
+    /// Ground truth of frame `t` (colour over `background`, mask, depth); errors name the file.
+    pub fn truth(&self, t: usize, background: [f32; 3]) -> anyhow::Result<FrameTruth> {
+        let cam = &self.cameras[t];
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let rgb = load_rgb(&self.scene.resolve(&cam.image_path), cam, background)?;
+        let mask = match &cam.mask_path {
+            Some(m) => {
+                let path = self.scene.resolve(m);
+                let img = crate::formats::png::read_png(&path)?;
+                if img.width != w || img.height != h {
+                    anyhow::bail!(
+                        "{}: mask is {}x{}, the camera says {w}x{h}",
+                        path.display(),
+                        img.width,
+                        img.height
+                    );
+                }
+                Some((0..w * h).map(|i| img.data[i * img.channels]).collect())
+            }
+            None => None,
+        };
+        let depth = match &cam.depth_path {
+            Some(d) => {
+                let path = self.scene.resolve(d);
+                let (shape, v) = crate::formats::npy::read_npy_f32(&path)?;
+                if v.len() != w * h {
+                    anyhow::bail!(
+                        "{}: depth has shape {shape:?}, the camera says {h}x{w}",
+                        path.display()
+                    );
+                }
+                Some(v)
+            }
+            None => None,
+        };
+        Ok(FrameTruth { rgb, mask, depth })
+    }
+
+    /// The 2D tracks from frame `s` to frame `t` (both visible), weighted as `form` does.
+    fn tracks(&self, s: usize, t: usize, form: TrackForm) -> anyhow::Result<Vec<Track>> {
+        let Some(r) = &self.tracks else { return Ok(Vec::new()) };
+        let w = match form {
+            TrackForm::Som { .. } => interval_weight(s, t, self.len()),
+            TrackForm::Mosca { .. } => 1.0,
+        };
+        Ok(tracks_between(&r.frame(s)?, &r.frame(t)?, w))
+    }
+}
+
+fn load_rgb(path: &Path, cam: &Camera, background: [f32; 3]) -> anyhow::Result<Vec<f32>> {
+    let img = crate::formats::png::read_png(path)?.rgb_over(background);
+    if img.width != cam.width as usize || img.height != cam.height as usize {
+        anyhow::bail!(
+            "{}: image is {}x{}, the camera of frame {} says {}x{}",
+            path.display(),
+            img.width,
+            img.height,
+            cam.frame,
+            cam.width,
+            cam.height
+        );
+    }
+    Ok(img.data)
+}
+
+/// Result of the image part of one step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageStep {
+    /// Named, weighted loss terms ([`super::image_loss::TERMS`]), means over the batch frames.
+    pub terms: Vec<(&'static str, f64)>,
+    /// Gradients of the batch-mean L_rgb.
+    pub grads: StateGrads,
+    /// `[N]` Σ over batch views of |∂L_view/∂mean2d| in NDC units (visible Gaussians only).
+    pub screen_grad: Vec<f32>,
+    /// `[N]` number of batch views in which the Gaussian was visible.
+    pub screen_count: Vec<u32>,
+}
+
+/// L_rgb and its gradients over the batch frames `batch` (frame indices, in order).
+pub fn image_step(
+    state: &TrainState,
+    views: &TrainingViews,
+    batch: &[usize],
+    weights: &ImageLossWeights,
+    settings: &RenderSettings,
+) -> anyhow::Result<ImageStep> {
+    let n = state.n();
+    let scales = state.scales();
+    let opacities = state.opacities();
+    let colors = if state.sh_degree == 0 {
+        ColorSource::Rgb(&state.color)
+    } else {
+        ColorSource::Sh {
+            degree: state.sh_degree,
+            dc: &state.color,
+            rest: &state.sh_rest,
+            frame: ShFrame::World,
+        }
+    };
+    let mut grads = StateGrads::zeros(state);
+    let mut screen_grad = vec![0.0f32; n];
+    let mut screen_count = vec![0u32; n];
+    let mut terms: Vec<(&'static str, f64)> = Vec::new();
+    let inv_b = 1.0 / batch.len().max(1) as f32;
+    for (j, &t) in batch.iter().enumerate() {
+        let cam = views.training_camera(t);
+        // The track term's target: the next frame of the batch (its positions rendered as
+        // features from this frame, Shape of Motion's scheme).
+        let target = batch[(j + 1) % batch.len()];
+        let target_cam = views.training_camera(target);
+        let tracks = if weights.track > 0.0 && target != t {
+            views.tracks(t, target, weights.track_form)?
+        } else {
+            Vec::new()
+        };
+        let nf = if tracks.is_empty() { 0 } else { 3 };
+        let mut features = vec![0.0f32; n * nf];
+        if nf > 0 {
+            write_target_features(&mut features, nf, 0, state.positions(target), &target_cam);
+        }
+        let inputs = SplatInputs {
+            means: state.positions(t),
+            quats: state.rotations(t),
+            scales: &scales,
+            opacities: &opacities,
+            colors,
+            features: &features,
+            num_features: nf,
+        };
+        let (out, saved) = CpuRenderer
+            .render_with_saved(&cam, &inputs, settings, Cutoff::Hard)
+            .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
+        let truth = views.truth(t, settings.background)?;
+        let sets = [TrackSet { block: 0, camera: &target_cam, tracks: &tracks }];
+        let targets = FrameTargets {
+            rgb: &truth.rgb,
+            valid: None,
+            mask: truth.mask.as_deref(),
+            depth: truth.depth.as_deref(),
+            tracks: if nf > 0 { &sets } else { &[] },
+        };
+        let (frame_terms, v) =
+            rgb_loss(&out, &targets, weights).map_err(|e| anyhow::anyhow!("frame {t}: {e}"))?;
+        for (name, value) in frame_terms {
+            match terms.iter_mut().find(|(k, _)| *k == name) {
+                Some((_, s)) => *s += value / batch.len() as f64,
+                None => terms.push((name, value / batch.len() as f64)),
+            }
+        }
+        let g = CpuRenderer
+            .backward(&cam, &inputs, settings, &saved, &v)
+            .map_err(|e| anyhow::anyhow!("frame {t}: backward: {e}"))?;
+        let (half_w, half_h) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);
+        let k3 = state.sh_rest.len() / n.max(1);
+        for i in 0..n {
+            let p = &mut grads.poses.position[t * n + i];
+            for k in 0..3 {
+                p[k] += inv_b * g.means[i][k];
+            }
+            let q = &mut grads.poses.rotation[t * n + i];
+            for k in 0..4 {
+                q[k] += inv_b * g.quats[i][k];
+            }
+            for k in 0..3 {
+                grads.log_scale[i][k] += inv_b * g.scales[i][k] * scales[i][k];
+                grads.color[i][k] += inv_b * g.colors[i][k];
+            }
+            let o = sigmoid(state.logit_opacity[i]);
+            grads.logit_opacity[i] += inv_b * g.opacities[i] * o * (1.0 - o);
+            if out.aux.visible[i] {
+                let [gx, gy] = g.means2d[i];
+                screen_grad[i] += ((gx * half_w).powi(2) + (gy * half_h).powi(2)).sqrt();
+                screen_count[i] += 1;
+            }
+        }
+        for (d, s) in grads.sh_rest.iter_mut().zip(&g.sh_rest) {
+            *d += inv_b * s;
+        }
+        if nf > 0 {
+            let scaled: Vec<f32> = g.features.iter().map(|v| inv_b * v).collect();
+            let at = &mut grads.poses.position[target * n..(target + 1) * n];
+            add_target_position_grads(at, &scaled, nf, 0, &target_cam);
+        }
+        debug_assert_eq!(grads.sh_rest.len(), n * k3);
+    }
+    Ok(ImageStep { terms, grads, screen_grad, screen_count })
+}

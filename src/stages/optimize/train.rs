@@ -1,0 +1,495 @@
+//! The training loop of `usplat4d optimize`: load the model (less the Gaussians that
+//! key-node selection culled), resume from a checkpoint when one of the same run exists,
+//! then per step draw the batch frames, take L_rgb ([`super::step`]) plus the recipe's
+//! graph or motion terms, tie static poses, update every Adam group, run density control
+//! on its schedule, log, and checkpoint. Writes the trained model directory, its
+//! `training_log.parquet`, and with the usplat4d recipe the roles (`key_nodes.parquet`) and
+//! graph (`edges.parquet`) of the trained Gaussians.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use super::adam::{Adam, Group};
+use super::checkpoint::{self, Checkpoint};
+use super::density::{self, DensityStats};
+use super::graph_loss::GraphObjective;
+use super::objective::{GraphSource, KnnMotion, build_graph};
+use super::params::{OptimizeParams, OptimizeSettings, Recipe};
+use super::poses::Poses;
+use super::state::TrainState;
+use super::step::{TrainingViews, image_step};
+use crate::context::Context;
+use crate::model::Model;
+use crate::render::RenderSettings;
+use crate::scene::Scene;
+use crate::tables::edges::{EdgeKind, Edges};
+use crate::tables::key_nodes::{KeyNodes, Role};
+use crate::tables::training_log::{LR_GROUPS, LogRow};
+use crate::tables::{self, Provenance, Table};
+use crate::util::rng::{Rng, mix};
+
+/// The frames of step `step`: positions `step·B .. step·B + B` of an endless stream made of
+/// one seeded permutation of 0..T per epoch (the release's `infinite_batches`). A pure
+/// function of (seed, step), so a resumed run draws the same frames.
+pub fn batch_frames(seed: u64, step: u32, frames: usize, batch: usize) -> Vec<usize> {
+    let start = step as usize * batch;
+    let mut perm: Option<(usize, Vec<usize>)> = None;
+    (start..start + batch)
+        .map(|k| {
+            let epoch = k / frames;
+            if perm.as_ref().is_none_or(|(e, _)| *e != epoch) {
+                let mut rng = Rng::new(mix(seed) ^ mix(epoch as u64 ^ 0xba7c_4000_0000));
+                let mut p: Vec<usize> = (0..frames).collect();
+                for i in (1..frames).rev() {
+                    p.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+                }
+                perm = Some((epoch, p));
+            }
+            perm.as_ref().map(|(_, p)| p[k % frames]).unwrap_or(0)
+        })
+        .collect()
+}
+
+/// The graph inputs of the usplat4d recipe.
+struct GraphInputs {
+    keys: KeyNodes,
+    edges: Edges,
+}
+
+fn read_graph(p: &OptimizeParams) -> anyhow::Result<Option<GraphInputs>> {
+    let (Some(kn), Some(ed)) = (&p.keynodes, &p.edges) else { return Ok(None) };
+    let keys = tables::key_nodes::read(&kn.join(tables::key_nodes::KeyNodesTable::file_name()))?;
+    let edges = tables::edges::read(&ed.join(tables::edges::EdgesTable::file_name()))?;
+    Ok(Some(GraphInputs { keys, edges }))
+}
+
+/// The recipe's non-image terms.
+enum Objective {
+    Knn(KnnMotion),
+    Graph(Box<GraphObjective>),
+}
+
+fn build_objective(
+    s: &OptimizeSettings,
+    source: Option<&GraphSource>,
+    state: &TrainState,
+    learned: Option<&Edges>,
+) -> anyhow::Result<Objective> {
+    Ok(match source {
+        None => Objective::Knn(KnnMotion::new(state, s.knn_k)),
+        Some(src) => Objective::Graph(Box::new(build_graph(
+            src,
+            state,
+            learned.unwrap_or(&src.edges),
+            &s.graph,
+        )?)),
+    })
+}
+
+/// One Adam group per trainable tensor of the graph objective, after the image groups.
+fn add_graph_groups(adam: &mut Adam, o: &mut GraphObjective, s: &OptimizeSettings) {
+    for slice in o.params_mut() {
+        let lr = if slice.lr_key == "dists_key" { s.lr.lengths } else { s.lr.graph };
+        adam.groups.push(Group {
+            name: slice.name.to_string(),
+            lr,
+            m: vec![0.0; slice.values.len()],
+            v: vec![0.0; slice.values.len()],
+        });
+    }
+}
+
+/// Restore the graph objective's tensors from a checkpoint.
+fn restore_graph(o: &mut GraphObjective, saved: &[(String, Vec<f32>)]) -> anyhow::Result<()> {
+    let slices = o.params_mut();
+    if slices.len() != saved.len() {
+        anyhow::bail!(
+            "checkpoint: {} graph tensors, the objective has {}",
+            saved.len(),
+            slices.len()
+        );
+    }
+    for (slice, (name, v)) in slices.into_iter().zip(saved) {
+        if slice.name != name || slice.values.len() != v.len() {
+            anyhow::bail!(
+                "checkpoint: graph tensor {name} does not match the objective's {}",
+                slice.name
+            );
+        }
+        slice.values.copy_from_slice(v);
+    }
+    Ok(())
+}
+
+/// The training log's learning rates: image groups by name, graph tensors as `graph` and
+/// `lengths`.
+fn log_rates(adam: &Adam) -> Vec<(String, f32)> {
+    let mut out: Vec<(String, f32)> = Vec::new();
+    for g in &adam.groups {
+        let name = match g.name.as_str() {
+            "dists_key" => "lengths",
+            n if LR_GROUPS.contains(&n) => n,
+            _ => "graph",
+        };
+        if !out.iter().any(|(k, _)| k == name) {
+            out.push((name.to_string(), g.lr));
+        }
+    }
+    out
+}
+
+/// p°, u and camera rotations the graph objective is built from.
+fn graph_source(
+    p: &OptimizeParams,
+    model: &Model,
+    views: &TrainingViews,
+    g: &GraphInputs,
+) -> anyhow::Result<GraphSource> {
+    let (nt, n) = (model.num_frames(), model.gaussians.len());
+    let mut initial = Poses {
+        frames: nt,
+        n,
+        position: Vec::with_capacity(nt * n),
+        rotation: Vec::with_capacity(nt * n),
+    };
+    for t in 0..nt {
+        let f = model.frame(t)?;
+        initial.position.extend(f.position);
+        initial.rotation.extend(f.rotation);
+    }
+    let row: HashMap<u32, usize> =
+        model.gaussians.id.iter().enumerate().map(|(r, &i)| (i, r)).collect();
+    let dir = p
+        .uncertainty
+        .as_ref()
+        .ok_or_else(|| anyhow::anyhow!("the usplat4d recipe needs --uncertainty DIR"))?;
+    let reader = tables::uncertainty::UncertaintyReader::open(
+        &dir.join(tables::uncertainty::UncertaintyTable::file_name()),
+    )?;
+    if reader.num_frames() != nt {
+        anyhow::bail!("{}: {} frames, the model has {nt}", dir.display(), reader.num_frames());
+    }
+    let cols: Vec<Option<usize>> = {
+        let at: HashMap<u32, usize> =
+            reader.ids().iter().enumerate().map(|(k, &i)| (i, k)).collect();
+        model.gaussians.id.iter().map(|i| at.get(i).copied()).collect()
+    };
+    let mut u = Vec::with_capacity(nt * n);
+    for t in 0..nt {
+        let f = reader.frame(t)?;
+        u.extend(cols.iter().map(|c| c.map_or(1e8, |k| f.u[k])));
+    }
+    let rot_cw = (0..nt)
+        .map(|t| {
+            let w2c = views.training_camera(t).w2c.as_dmat4();
+            glam::DMat3::from_mat4(w2c)
+        })
+        .collect();
+    Ok(GraphSource { keys: g.keys.clone(), edges: g.edges.clone(), row, initial, u, rot_cw })
+}
+
+/// Input files whose bytes the checkpoint fingerprint covers.
+fn input_files(p: &OptimizeParams) -> Vec<PathBuf> {
+    let mut v = vec![
+        Model::gaussians_path(&p.model),
+        Model::trajectories_path(&p.model),
+        Scene::cameras_path(&p.scene),
+    ];
+    if let Some(d) = &p.uncertainty {
+        v.push(d.join(tables::uncertainty::UncertaintyTable::file_name()));
+    }
+    if let Some(d) = &p.keynodes {
+        v.push(d.join(tables::key_nodes::KeyNodesTable::file_name()));
+    }
+    if let Some(d) = &p.edges {
+        v.push(d.join(tables::edges::EdgesTable::file_name()));
+    }
+    v
+}
+
+/// Half the bounding-box diagonal of `p` `[N, 3]` (the scene extent of density control).
+fn extent(p: &[[f32; 3]]) -> f32 {
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for q in p {
+        for k in 0..3 {
+            lo[k] = lo[k].min(q[k]);
+            hi[k] = hi[k].max(q[k]);
+        }
+    }
+    0.5 * (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f32>().sqrt()
+}
+
+/// Adam over the image parameters of `state`, groups in [`density::group_layouts`] order.
+fn new_adam(state: &TrainState, s: &OptimizeSettings) -> Adam {
+    let (n, t) = (state.n(), state.frames());
+    Adam::new(&[
+        ("position", s.lr.position, t * n * 3),
+        ("rotation", s.lr.rotation, t * n * 4),
+        ("scale", s.lr.scale, n * 3),
+        ("opacity", s.lr.opacity, n),
+        ("color", s.lr.color, n * 3),
+        ("sh_rest", s.lr.sh_rest, state.sh_rest.len()),
+    ])
+}
+
+/// `usplat4d optimize`.
+pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
+    let _span = tracing::info_span!("optimize").entered();
+    let s = p.resolve()?;
+    let model = Model::load(&p.model)?;
+    let scene = Scene::load(&p.scene)?;
+    let views = TrainingViews::new(&scene)?;
+    if views.len() != model.num_frames() {
+        anyhow::bail!(
+            "{}: {} training frames, but the model {} has {}",
+            p.scene.display(),
+            views.len(),
+            p.model.display(),
+            model.num_frames()
+        );
+    }
+    let graph = match s.recipe {
+        Recipe::Usplat4d => read_graph(p)?,
+        Recipe::Vanilla => None,
+    };
+    let role: HashMap<u32, Role> = graph
+        .as_ref()
+        .map(|g| g.keys.id.iter().copied().zip(g.keys.role.iter().copied()).collect())
+        .unwrap_or_default();
+    // Gaussians culled by key-node selection leave the model at the start (release row 35).
+    let keep: Vec<bool> =
+        model.gaussians.id.iter().map(|i| role.get(i) != Some(&Role::Culled)).collect();
+    let scene_extent = extent(&model.frame(0)?.position);
+
+    let mut settings_json = serde_json::to_value(&s)?;
+    settings_json["checkpoint-every"] = serde_json::Value::Null;
+    let fp = checkpoint::fingerprint(&settings_json, &input_files(p))?;
+    let ckpt_path = checkpoint::path_of(&p.out);
+    let resumed = checkpoint::load(&ckpt_path, &fp)?;
+    let mut c = match resumed {
+        Some(c) => {
+            ctx.info(format!(
+                "optimize: resuming after step {} from {}",
+                c.step,
+                ckpt_path.display()
+            ));
+            c
+        }
+        None => {
+            let state = TrainState::from_model(&model, Some(&keep))?;
+            let next_id = model.gaussians.id.iter().max().map_or(0, |m| m + 1);
+            Checkpoint {
+                step: 0,
+                next_id,
+                adam: new_adam(&state, &s),
+                density: DensityStats::new(state.n()),
+                state,
+                graph: Vec::new(),
+                log: Vec::new(),
+            }
+        }
+    };
+    let source = match &graph {
+        Some(g) => Some(graph_source(p, &model, &views, g)?),
+        None => None,
+    };
+    let mut objective = build_objective(&s, source.as_ref(), &c.state, None)?;
+    match &mut objective {
+        Objective::Graph(o) if c.step == 0 => add_graph_groups(&mut c.adam, o, &s),
+        Objective::Graph(o) => restore_graph(o, &c.graph)?,
+        Objective::Knn(_) if c.step == 0 => {}
+        Objective::Knn(k) => {
+            *k = KnnMotion::from_tensors(&c.graph)
+                .ok_or_else(|| anyhow::anyhow!("{}: no kNN graph", ckpt_path.display()))?;
+        }
+    }
+    let render = RenderSettings::default();
+    let bar = ctx.progress(s.steps as u64, "optimize");
+    bar.set_position(c.step as u64);
+    while c.step < s.steps {
+        let step = c.step;
+        let started = Instant::now();
+        let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
+        let img = image_step(&c.state, &views, &batch, &s.image, &render)?;
+        let mut grads = img.grads;
+        let mut terms: Vec<(String, f64)> = Vec::new();
+        terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
+        let extra = match &mut objective {
+            Objective::Knn(k) => k.evaluate(&c.state.poses, &mut grads.poses),
+            Objective::Graph(o) => {
+                o.evaluate(&c.state.poses, &batch, mix(s.seed ^ step as u64), &mut grads.poses)
+            }
+        };
+        terms.extend(extra.iter().map(|(k, v)| (k.to_string(), *v)));
+        let loss: f64 = terms.iter().map(|(_, v)| v).sum();
+        c.state.tie_static(&mut grads.poses);
+        c.adam.begin_step();
+        let st = &mut c.state;
+        c.adam.update(0, st.poses.position.as_flattened_mut(), grads.poses.position.as_flattened());
+        c.adam.update(1, st.poses.rotation.as_flattened_mut(), grads.poses.rotation.as_flattened());
+        c.adam.update(2, st.log_scale.as_flattened_mut(), grads.log_scale.as_flattened());
+        c.adam.update(3, &mut st.logit_opacity, &grads.logit_opacity);
+        c.adam.update(4, st.color.as_flattened_mut(), grads.color.as_flattened());
+        c.adam.update(5, &mut st.sh_rest, &grads.sh_rest);
+        if let Objective::Graph(o) = &mut objective {
+            for (k, slice) in o.params_mut().into_iter().enumerate() {
+                c.adam.update(6 + k, slice.values, slice.grads);
+            }
+        }
+        c.density.add(&img.screen_grad, &img.screen_count);
+        if s.density.active(step, s.steps) {
+            let protected: Vec<bool> =
+                c.state.ids.iter().map(|i| role.get(i) == Some(&Role::Key)).collect();
+            let r = density::densify_and_prune(
+                &mut c.state,
+                &mut c.adam,
+                &c.density,
+                &protected,
+                &s.density,
+                scene_extent,
+                s.seed,
+                step,
+                &mut c.next_id,
+            );
+            tracing::info!(step, ?r, n = c.state.n(), "density control");
+            c.density = DensityStats::new(c.state.n());
+            let learned = match &objective {
+                Objective::Graph(o) => Some(o.learned_edges().0),
+                Objective::Knn(_) => None,
+            };
+            objective = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
+            c.adam.groups.truncate(6);
+            if let Objective::Graph(o) = &mut objective {
+                add_graph_groups(&mut c.adam, o, &s);
+            }
+        }
+        if s.density.reset(step, s.steps) {
+            density::reset_opacity(&mut c.state, &mut c.adam);
+        }
+        c.log.push(LogRow {
+            step,
+            num_gaussians: c.state.n() as u32,
+            seconds: started.elapsed().as_secs_f64(),
+            loss,
+            terms,
+            lr: log_rates(&c.adam),
+        });
+        c.step += 1;
+        bar.set_message(format!("loss {loss:.4}"));
+        bar.inc(1);
+        if s.checkpoint_every.is_some_and(|k| c.step.is_multiple_of(k)) && c.step < s.steps {
+            c.graph = match &mut objective {
+                Objective::Graph(o) => o
+                    .params_mut()
+                    .into_iter()
+                    .map(|p| (p.name.to_string(), p.values.to_vec()))
+                    .collect(),
+                Objective::Knn(k) => k.to_tensors(),
+            };
+            checkpoint::save(&ckpt_path, &fp, &c)?;
+            if p.abort_after_step == Some(c.step) {
+                std::process::abort();
+            }
+        }
+    }
+    bar.finish_and_clear();
+    let learned = match &objective {
+        Objective::Graph(o) => Some(o.learned_edges().0),
+        Objective::Knn(_) => None,
+    };
+    write_outputs(p, &s, &c, graph.as_ref().zip(learned.as_ref()))?;
+    let dir = checkpoint::dir_of(&p.out);
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+    }
+    Ok(())
+}
+
+/// The trained model, the training log, and (usplat4d) the roles and graph of the trained
+/// Gaussians: a new Gaussian is a non-key with its origin's t̂ and non-key edges.
+fn write_outputs(
+    p: &OptimizeParams,
+    s: &OptimizeSettings,
+    c: &Checkpoint,
+    graph: Option<(&GraphInputs, &Edges)>,
+) -> anyhow::Result<()> {
+    let prov = Provenance::new("optimize", &serde_json::json!({ "params": p, "resolved": s }));
+    let st = &c.state;
+    Model::save(
+        &p.out,
+        &st.to_gaussians(),
+        (0..st.frames()).map(|t| Ok(st.frame_state(t))),
+        &prov,
+    )?;
+    tables::training_log::write(
+        &p.out.join(tables::training_log::TrainingLogTable::file_name()),
+        &c.log,
+        &prov,
+    )?;
+    if let Some((g, learned)) = graph {
+        let (keys, _) = trained_graph(st, &g.keys, &g.edges);
+        let edges = learned;
+        tables::key_nodes::write(
+            &p.out.join(tables::key_nodes::KeyNodesTable::file_name()),
+            &keys,
+            &prov,
+        )?;
+        tables::edges::write(&p.out.join(tables::edges::EdgesTable::file_name()), edges, &prov)?;
+    }
+    Ok(())
+}
+
+/// Roles and edges of the trained Gaussians: inputs' rows for surviving Gaussians, the
+/// origin's t̂ and non-key edges for new ones (role `nonkey`).
+pub fn trained_graph(st: &TrainState, keys: &KeyNodes, edges: &Edges) -> (KeyNodes, Edges) {
+    let row: HashMap<u32, usize> = keys.id.iter().enumerate().map(|(r, &i)| (i, r)).collect();
+    let alive: std::collections::HashSet<u32> = st.ids.iter().copied().collect();
+    let mut out = KeyNodes::default();
+    for (&id, &origin) in st.ids.iter().zip(&st.origin) {
+        let Some(&r) = row.get(&origin) else { continue };
+        let own = id == origin;
+        out.id.push(id);
+        out.role.push(if own { keys.role[r] } else { Role::Nonkey });
+        out.t_hat.push(keys.t_hat[r]);
+        out.significant_period.push(if own { keys.significant_period[r] } else { 0 });
+    }
+    let mut by_src: HashMap<u32, Vec<usize>> = HashMap::new();
+    for e in 0..edges.len() {
+        by_src.entry(edges.src[e]).or_default().push(e);
+    }
+    let mut e_out = Edges::default();
+    for kind in [EdgeKind::KeyKey, EdgeKind::NonkeyKey] {
+        for (&id, &origin) in st.ids.iter().zip(&st.origin) {
+            for &e in by_src.get(&origin).map(Vec::as_slice).unwrap_or(&[]) {
+                let new_nonkey = id != origin;
+                let k = if new_nonkey { EdgeKind::NonkeyKey } else { edges.kind[e] };
+                if k == kind
+                    && alive.contains(&edges.dst[e])
+                    && (!new_nonkey || edges.kind[e] == EdgeKind::NonkeyKey)
+                {
+                    e_out.push(id, edges.dst[e], k, edges.weight[e]);
+                }
+            }
+        }
+    }
+    (out, e_out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn batches_cover_every_frame_once_per_epoch() {
+        let t = 11;
+        let frames: Vec<usize> = (0..11).flat_map(|s| batch_frames(3, s, t, 8)).collect();
+        for epoch in frames.chunks(t).take(8) {
+            let mut e = epoch.to_vec();
+            e.sort_unstable();
+            assert_eq!(e, (0..t).collect::<Vec<_>>());
+        }
+        assert_ne!(batch_frames(3, 0, t, 8), batch_frames(4, 0, t, 8), "seeded");
+        assert_eq!(batch_frames(3, 5, t, 8), frames[40..48].to_vec(), "pure in (seed, step)");
+    }
+}

@@ -1,0 +1,115 @@
+//! `usplat4d bench optimize`: milliseconds per optimisation step (batch of training frames)
+//! and peak resident memory of `optimize` on a given model and scene (e.g. the Fox scene made
+//! by `synth --width 256 --height 256 --gaussians 20000`). Runs the real stage into a
+//! temporary directory without checkpoints or density control and reads the per-step wall
+//! times from its training log; the first step (warm-up) is left out of the mean. Peak memory
+//! is the process's VmHWM.
+
+use std::path::PathBuf;
+
+use crate::context::Context;
+use crate::stages::optimize::params::{OptimizeParams, Recipe};
+use crate::stages::params::Profile;
+
+/// Parameters of `usplat4d bench optimize`.
+#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct BenchOptimizeParams {
+    /// Model directory to start from.
+    #[arg(long, value_name = "MODEL_DIR")]
+    pub model: PathBuf,
+    /// Scene directory.
+    #[arg(long, value_name = "SCENE_DIR")]
+    pub scene: PathBuf,
+    /// Recipe to time.
+    #[arg(long, value_enum, default_value_t = Recipe::Vanilla)]
+    pub recipe: Recipe,
+    /// Profile.
+    #[arg(long, value_enum, default_value_t = Profile::Paper)]
+    #[serde(default)]
+    pub profile: Profile,
+    /// uncertainty / keynodes / edges directories (usplat4d recipe).
+    #[arg(long, num_args = 3, value_names = ["UNCERTAINTY", "KEYNODES", "EDGES"])]
+    #[serde(default)]
+    pub graph: Option<Vec<PathBuf>>,
+    /// Steps to time.
+    #[arg(long, default_value_t = 5)]
+    pub steps: u32,
+    /// Training frames per step.
+    #[arg(long, default_value_t = 8)]
+    pub batch_frames: usize,
+}
+
+/// Run the benchmark and print one table row.
+pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
+    if cfg!(debug_assertions) {
+        ctx.warn(
+            "bench optimize: this is a debug build; timings are meaningful only with --release",
+        );
+    }
+    let tmp = tempfile::tempdir()?;
+    let out = tmp.path().join("model");
+    let g = p.graph.clone().unwrap_or_default();
+    let params = OptimizeParams {
+        model: p.model.clone(),
+        scene: p.scene.clone(),
+        out: out.clone(),
+        recipe: p.recipe,
+        uncertainty: g.first().cloned(),
+        keynodes: g.get(1).cloned(),
+        edges: g.get(2).cloned(),
+        steps: p.steps,
+        profile: p.profile,
+        batch_frames: Some(p.batch_frames),
+        seed: 0,
+        checkpoint_every: Some(0),
+        abort_after_step: None,
+        no_loss_weighting: false,
+        lr_position: None,
+        lr_rotation: None,
+        lr_scale: None,
+        lr_opacity: None,
+        lr_color: None,
+        lr_sh_rest: None,
+        lr_graph: None,
+        lr_lengths: None,
+        lambda_ssim: None,
+        lambda_mask: None,
+        lambda_depth: None,
+        lambda_track: None,
+        lambda_graph: None,
+        key_anchor_weight: None,
+        nonkey_anchor_weight: None,
+        anchor_metric: None,
+        r_z: None,
+        lambda_vel: None,
+        lambda_acc: None,
+        edge_keep_ratio: None,
+        knn_k: None,
+        density_start: Some(2.0),
+        density_end: None,
+        densify_every: None,
+        opacity_reset_every: Some(0),
+        densify_grad: None,
+        percent_dense: None,
+        prune_opacity: None,
+    };
+    crate::stages::optimize::run(&params, ctx)?;
+    let log = crate::tables::training_log::read(&out.join("training_log.parquet"))?;
+    let timed: Vec<f64> = log.iter().skip(1).map(|r| r.seconds).collect();
+    let ms = 1e3 * timed.iter().sum::<f64>() / timed.len().max(1) as f64;
+    let model = crate::model::Model::load(&out)?;
+    let rss = crate::tools::bench::graph::peak_rss_bytes().map_or(f64::NAN, |b| b as f64 / 1e9);
+    println!("| recipe | profile | N | T | batch | ms/step | peak RSS GB | threads |");
+    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| {:?} | {:?} | {} | {} | {} | {ms:.0} | {rss:.2} | {} |",
+        p.recipe,
+        p.profile,
+        model.gaussians.len(),
+        model.num_frames(),
+        p.batch_frames,
+        rayon::current_num_threads()
+    );
+    Ok(())
+}
