@@ -14,7 +14,10 @@
 pub mod cli;
 pub mod context;
 pub mod datasets;
+pub mod formats;
 pub mod image_io;
+pub mod import;
+pub mod math;
 pub mod metrics;
 pub mod model;
 pub mod pipeline;

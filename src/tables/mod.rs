@@ -15,6 +15,7 @@ pub mod inspect;
 pub mod io;
 pub mod key_nodes;
 pub mod metrics;
+pub mod model_cameras;
 pub mod segments;
 pub mod tracks_2d;
 pub mod tracks_3d;
@@ -124,6 +125,7 @@ pub fn registry() -> Vec<TableKind> {
         entry::<cameras::CamerasTable>(),
         entry::<gaussians::GaussiansTable>(),
         entry::<trajectories::TrajectoriesTable>(),
+        entry::<model_cameras::ModelCamerasTable>(),
         entry::<tracks_2d::Tracks2dTable>(),
         entry::<tracks_3d::Tracks3dTable>(),
         entry::<metrics::MetricsTable>(),
