@@ -481,7 +481,9 @@ impl Decoder<'_> {
         let args = match args {
             Pv::Tuple(a) => a,
             _ => {
-                return Err(self.key_err(key, format!("{module}.{name}: arguments are not a tuple")));
+                return Err(
+                    self.key_err(key, format!("{module}.{name}: arguments are not a tuple"))
+                );
             }
         };
         match (module.as_str(), name.as_str()) {
