@@ -494,7 +494,8 @@ fn mutate(rng: &mut Rng, b: &mut Vec<u8>) {
 
 /// Mutated fixture checkpoints never panic the reader or the importers. Half the cases
 /// mutate `data.pkl` and re-zip (to get past the zip CRCs), half the raw archive.
-/// `USPLAT4D_FUZZ_ITERS` (default 300) and `USPLAT4D_FUZZ_SEED` set the run.
+/// `USPLAT4D_FUZZ_ITERS` (default 300), `USPLAT4D_FUZZ_SECS` (a time limit) and
+/// `USPLAT4D_FUZZ_SEED` set the run.
 #[test]
 fn fuzz_checkpoint_reader() {
     let (Some(s), Some(m)) = (fixtures("som"), fixtures("mosca")) else { return };
@@ -502,6 +503,10 @@ fn fuzz_checkpoint_reader() {
         std::env::var("USPLAT4D_FUZZ_ITERS").ok().and_then(|v| v.parse().ok()).unwrap_or(300);
     let seed: u64 =
         std::env::var("USPLAT4D_FUZZ_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(1);
+    let secs: f64 = std::env::var("USPLAT4D_FUZZ_SECS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(f64::INFINITY);
     let files = [
         std::fs::read(s.join("som_last.ckpt")).unwrap(),
         std::fs::read(s.join("som_init.ckpt")).unwrap(),
@@ -514,7 +519,12 @@ fn fuzz_checkpoint_reader() {
     let mut rng = Rng(seed);
     let (mut panics, mut accepted) = (Vec::new(), 0usize);
     let start = std::time::Instant::now();
+    let mut done = 0;
     for i in 0..iters {
+        if start.elapsed().as_secs_f64() > secs {
+            break;
+        }
+        done += 1;
         let which = rng.below(files.len());
         let bytes = if rng.below(2) == 0 {
             let mut e = unzip(&files[which]);
@@ -546,7 +556,7 @@ fn fuzz_checkpoint_reader() {
         }
     }
     eprintln!(
-        "fuzz: {iters} cases (seed {seed}) in {:.1} s, {accepted} still imported, {} panics",
+        "fuzz: {done} cases (seed {seed}) in {:.1} s, {accepted} still imported, {} panics",
         start.elapsed().as_secs_f64(),
         panics.len()
     );
@@ -609,7 +619,19 @@ fn imported_mosca_runs_through_the_graph_stages() {
         "--voxel-size",
         "0.05",
     ]);
-    dir.ok(&["edges", "--model", "m", "--uncertainty", "unc", "--keynodes", "kn", "--out", "ed"]);
+    dir.ok(&[
+        "edges",
+        "--model",
+        "m",
+        "--scene",
+        "s",
+        "--uncertainty",
+        "unc",
+        "--keynodes",
+        "kn",
+        "--out",
+        "ed",
+    ]);
     let edges = usplat4d::tables::edges::read(&dir.join("ed/edges.parquet")).unwrap();
     assert!(!edges.is_empty());
 }
