@@ -589,7 +589,7 @@ impl Decoder<'_> {
     }
 
     /// `_rebuild_tensor_v2(storage, offset, size, stride, requires_grad, hooks[, meta])`.
-    fn tensor(&mut self, args: Vec<Pv>, key: &mut Vec<String>) -> Result<Value> {
+    fn tensor(&mut self, args: Vec<Pv>, key: &[String]) -> Result<Value> {
         let err = |d: &Self, m: String| d.key_err(key, m);
         let mut it = args.into_iter();
         let pid = match it.next() {

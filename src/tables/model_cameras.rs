@@ -202,7 +202,7 @@ pub fn read_similarity(path: &Path) -> Result<Similarity> {
     let bad = |msg: String| Error::Mismatch { path: path.to_path_buf(), msg };
     let sim: Similarity = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
     let finite = sim.rotation.iter().flatten().chain(&sim.translation).all(|x| x.is_finite());
-    if !(sim.scale.is_finite() && sim.scale > 0.0) || !finite {
+    if !(sim.scale.is_finite() && sim.scale > 0.0 && finite) {
         return Err(bad(format!("scale must be positive and all values finite, got {sim:?}")));
     }
     Ok(sim)
