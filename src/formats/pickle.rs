@@ -705,7 +705,7 @@ mod tests {
         let mut p = vec![0x80, 2, b'('];
         p.extend_from_slice(b"ctorch\nFloatStorage\n");
         p.extend_from_slice(b"X\x01\x00\x00\x00k");
-        p.extend_from_slice(&[b't', b'Q', b'.']);
+        p.extend_from_slice(b"tQ.");
         let want = Value::PersistentId(Box::new(Value::Tuple(vec![
             Value::Global { module: "torch".into(), name: "FloatStorage".into() },
             Value::Str("k".into()),
