@@ -114,6 +114,10 @@ pub enum Command {
 pub enum ImportCommand {
     /// A DyCheck iPhone sequence (camera JSONs, rgb, depth, splits).
     Dycheck(crate::datasets::dycheck::ImportDycheckParams),
+    /// A Shape of Motion checkpoint (`checkpoints/last.ckpt`) as a model directory.
+    Som(crate::import::som::ImportSomParams),
+    /// A MoSca log directory (`photometric_*.pth`) as a model directory.
+    Mosca(crate::import::mosca::ImportMoscaParams),
 }
 
 /// `usplat4d bench ...`
@@ -137,6 +141,8 @@ impl Command {
         match self {
             Command::Synth(_) => "synth",
             Command::Import(ImportCommand::Dycheck(_)) => "import dycheck",
+            Command::Import(ImportCommand::Som(_)) => "import som",
+            Command::Import(ImportCommand::Mosca(_)) => "import mosca",
             Command::Render(_) => "render",
             Command::Uncertainty(_) => "uncertainty",
             Command::Keynodes(_) => "keynodes",
@@ -164,6 +170,8 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
     match command {
         Command::Synth(p) => datasets::synth::run(&p, ctx),
         Command::Import(ImportCommand::Dycheck(p)) => datasets::dycheck::run_import(&p, ctx),
+        Command::Import(ImportCommand::Som(p)) => crate::import::som::run(&p, ctx),
+        Command::Import(ImportCommand::Mosca(p)) => crate::import::mosca::run(&p, ctx),
         Command::Render(p) => stages::render::run(&p, ctx),
         Command::Uncertainty(p) => stages::uncertainty::run(&p, ctx),
         Command::Keynodes(p) => stages::keynodes::run(&p, ctx),

@@ -25,6 +25,7 @@ pub mod cli;
 pub mod context;
 pub mod datasets;
 pub mod formats;
+pub mod import;
 pub mod math;
 pub mod metrics;
 pub mod model;

@@ -6,19 +6,25 @@
 //! every frame. Frames are read one at a time ([`Model::frame`]) so that memory stays
 //! O(N), not O(N·T).
 //!
-//! The model is also the one place that turns a frame into renderer inputs
-//! ([`Model::splat_inputs`]): the frame the SH view direction is taken in ([`ShFrame`]) is a
-//! property of the model (3DGS and SoM: world, MoSca: the Gaussian's local frame), stored
-//! in the gaussians table's metadata under [`SH_FRAME_KEY`] (absent: world).
+//! An imported base model also carries its own training cameras (`model_cameras.parquet`)
+//! and the similarity from the scene's world frame to its own (`scene_to_model.json`);
+//! [`Model::training_camera`] is the camera a stage renders training frame t with. The frame
+//! the SH view direction is taken in ([`ShFrame`]: world for 3DGS and SoM, the Gaussian's
+//! local frame for MoSca) is a model property stored in the gaussians table's metadata under
+//! [`SH_FRAME_KEY`] (absent: world).
 
 use std::path::{Path, PathBuf};
 
+use crate::render::{ColorSource, ShFrame, SplatInputs};
+use crate::scene::Camera;
+pub use crate::tables::gaussians::Gaussians;
+use crate::tables::model_cameras::{self, ModelCamera, ModelCamerasTable, Similarity};
+pub use crate::tables::trajectories::FrameState;
 use crate::tables::trajectories::{TrajectoriesTable, TrajectoryReader, TrajectoryWriter};
 use crate::tables::{self, Provenance, Table, gaussians::GaussiansTable};
 
-use crate::render::{ColorSource, ShFrame, SplatInputs};
-pub use crate::tables::gaussians::Gaussians;
-pub use crate::tables::trajectories::FrameState;
+/// File name of the scene-to-model similarity inside a model directory.
+pub const SIMILARITY_FILE: &str = "scene_to_model.json";
 
 /// A model directory opened for frame-by-frame reading.
 pub struct Model {
@@ -28,6 +34,10 @@ pub struct Model {
     pub gaussians: Gaussians,
     /// The frame SH colours are evaluated in.
     pub sh_frame: ShFrame,
+    /// The base model's own camera of each training frame, if it carries them.
+    pub cameras: Option<Vec<ModelCamera>>,
+    /// The similarity from the scene's world frame to the model's, if known.
+    pub scene_to_model: Option<Similarity>,
     trajectories: TrajectoryReader,
 }
 
@@ -56,7 +66,13 @@ impl Model {
         dir.join(TrajectoriesTable::file_name())
     }
 
-    /// Open a model directory (reads the Gaussians, validates the trajectory layout).
+    /// Path of the model's own training cameras in a model directory.
+    pub fn cameras_path(dir: &Path) -> PathBuf {
+        dir.join(ModelCamerasTable::file_name())
+    }
+
+    /// Open a model directory (reads the Gaussians, validates the trajectory layout, reads
+    /// the model's cameras and similarity when present).
     pub fn load(dir: &Path) -> tables::Result<Model> {
         let path = Self::gaussians_path(dir);
         let gaussians = tables::gaussians::read(&path)?;
@@ -74,7 +90,34 @@ impl Model {
             }
         };
         let trajectories = TrajectoryReader::open(&Self::trajectories_path(dir), &gaussians.id)?;
-        Ok(Model { dir: dir.to_path_buf(), gaussians, sh_frame, trajectories })
+        let cams_path = Self::cameras_path(dir);
+        let cameras = if cams_path.exists() {
+            let cams = model_cameras::read(&cams_path)?;
+            if cams.len() != trajectories.num_frames() {
+                return Err(tables::Error::Mismatch {
+                    path: cams_path,
+                    msg: format!(
+                        "{} cameras for a model of {} frames",
+                        cams.len(),
+                        trajectories.num_frames()
+                    ),
+                });
+            }
+            Some(cams)
+        } else {
+            None
+        };
+        let sim_path = dir.join(SIMILARITY_FILE);
+        let scene_to_model =
+            if sim_path.exists() { Some(model_cameras::read_similarity(&sim_path)?) } else { None };
+        Ok(Model {
+            dir: dir.to_path_buf(),
+            gaussians,
+            sh_frame,
+            cameras,
+            scene_to_model,
+            trajectories,
+        })
     }
 
     /// The renderer inputs of frame `state`: its poses, the static attributes and the
@@ -90,6 +133,46 @@ impl Model {
             features: &[],
             num_features: 0,
         }
+    }
+
+    /// The camera to render training frame `scene_cam.frame` with: the model's own camera
+    /// (intrinsics rescaled to the scene image's size) when the model carries cameras, else
+    /// `scene_cam` itself. Image paths stay those of the scene.
+    pub fn training_camera(&self, scene_cam: &Camera) -> Camera {
+        let Some(mc) = self.cameras.as_ref().and_then(|c| c.get(scene_cam.frame as usize)) else {
+            return scene_cam.clone();
+        };
+        let sx = scene_cam.width as f64 / mc.width as f64;
+        let sy = scene_cam.height as f64 / mc.height as f64;
+        Camera {
+            fx: mc.fx * sx,
+            fy: mc.fy * sy,
+            cx: mc.cx * sx,
+            cy: mc.cy * sy,
+            w2c: mc.w2c,
+            distortion: None,
+            ..scene_cam.clone()
+        }
+    }
+
+    /// A scene camera (e.g. an evaluation view) expressed in the model's world frame
+    /// through the scene-to-model similarity (unchanged when the model has none).
+    pub fn camera_in_model_frame(&self, cam: &Camera) -> Camera {
+        match &self.scene_to_model {
+            Some(sim) => Camera { w2c: sim.w2c_to_model(&cam.w2c), ..cam.clone() },
+            None => cam.clone(),
+        }
+    }
+
+    /// Write a model's own cameras and scene-to-model similarity into model directory `dir`.
+    pub fn save_cameras(
+        dir: &Path,
+        cameras: &[ModelCamera],
+        scene_to_model: &Similarity,
+        provenance: &Provenance,
+    ) -> tables::Result<()> {
+        model_cameras::write(&Self::cameras_path(dir), cameras, provenance)?;
+        model_cameras::write_similarity(&dir.join(SIMILARITY_FILE), scene_to_model)
     }
 
     /// Number of frames T.

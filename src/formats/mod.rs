@@ -1,8 +1,14 @@
-//! File formats shared by the stages: 8-bit PNG images ([`png`]) and float32 `.npy` arrays
-//! ([`npy`]). All writes are atomic (temporary file, then rename; [`crate::util::fs`]).
+//! File formats: 8-bit PNG images ([`png`]) and float32 `.npy` arrays ([`npy`]) written by
+//! the stages (atomically: temporary file, then rename; [`crate::util::fs`]), and what the
+//! importers read: pickle streams ([`pickle`]), PyTorch checkpoints ([`torch`]), numpy
+//! `.npy`/`.npz` arrays of any dtype ([`npz`]) and the dense arrays they decode to ([`array`]).
 
+pub mod array;
 pub mod npy;
+pub mod npz;
+pub mod pickle;
 pub mod png;
+pub mod torch;
 
 use std::path::PathBuf;
 

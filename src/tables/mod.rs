@@ -14,6 +14,7 @@ pub mod gaussians;
 pub mod io;
 pub mod key_nodes;
 pub mod metrics;
+pub mod model_cameras;
 pub mod segments;
 pub mod tracks_2d;
 pub mod tracks_3d;
@@ -132,6 +133,7 @@ pub fn registry() -> Vec<TableKind> {
         entry::<cameras::CamerasTable>(),
         entry::<gaussians::GaussiansTable>(),
         entry::<trajectories::TrajectoriesTable>(),
+        entry::<model_cameras::ModelCamerasTable>(),
         entry::<tracks_2d::Tracks2dTable>(),
         entry::<tracks_3d::Tracks3dTable>(),
         entry::<metrics::MetricsTable>(),

