@@ -83,8 +83,8 @@ const STREAM_BUDGET: u64 = u64::MAX - 1;
 const STREAM_CAP: u64 = u64::MAX;
 
 /// Edge of the candidate voxel grid (profile row 19).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize, serde::Serialize)]
-#[serde(try_from = "String", into = "String")]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[serde(into = "String")]
 pub enum VoxelSize {
     /// The finest rung of a ladder of edges whose keys fit `key-budget` (module doc).
     Auto,
@@ -117,13 +117,6 @@ impl std::fmt::Display for VoxelSize {
     }
 }
 
-impl TryFrom<String> for VoxelSize {
-    type Error = String;
-    fn try_from(s: String) -> Result<Self, String> {
-        s.parse()
-    }
-}
-
 impl From<VoxelSize> for String {
     fn from(v: VoxelSize) -> String {
         v.to_string()
@@ -131,8 +124,8 @@ impl From<VoxelSize> for String {
 }
 
 /// The most non-keys kept in the graph (profile row 33).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
-#[serde(try_from = "String", into = "String")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(into = "String")]
 pub enum NonkeyCap {
     /// No cap (paper).
     None,
@@ -176,13 +169,6 @@ impl std::fmt::Display for NonkeyCap {
             NonkeyCap::ByFrames => write!(f, "by-frames"),
             NonkeyCap::Count(n) => write!(f, "{n}"),
         }
-    }
-}
-
-impl TryFrom<String> for NonkeyCap {
-    type Error = String;
-    fn try_from(s: String) -> Result<Self, String> {
-        s.parse()
     }
 }
 
