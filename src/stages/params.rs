@@ -1,5 +1,51 @@
 //! Parameters shared by the stages: the method [`Profile`] that selects the defaults of
-//! unset parameters, and [`Amount`], a count or a percentage of a total.
+//! unset parameters, [`Amount`], a count or a percentage of a total, the option-value
+//! parsers of [`check`], and [`stage_params!`](crate::stage_params), which turns one
+//! declaration per parameter into everything a stage needs.
+//!
+//! A stage parameter is declared once: its name, help, the parser of its command-line
+//! value, the paper and release values (spelled as on the command line, parsed by that
+//! same parser) and the row of official-release.md §11 it comes from:
+//!
+//! ```ignore
+//! stage_params! {
+//!     /// Parameters of `usplat4d uncertainty`; unset values take the profile's defaults.
+//!     pub struct UncertaintyParams;
+//!     /// Concrete settings (recorded in the table's provenance).
+//!     pub struct UncertaintySettings;
+//!     inputs {
+//!         /// Model directory (gaussians.parquet + trajectories.parquet).
+//!         #[arg(long, value_name = "MODEL_DIR")]
+//!         model: PathBuf,
+//!     }
+//!     params {
+//!         /// Colour-error threshold η_c, in (0, 1].
+//!         eta_c: f32 => f32 [check::unit] { paper "0.5", release "0.3", row "5", heading "Method" },
+//!         /// SSIM gate threshold, 0 for off.
+//!         ssim_gate: f32 => Option<f32> [check::finite32]
+//!             { paper "0", release "0.01", row "7", heading "Method" },
+//!     }
+//!     copied {
+//!         /// Seed of the random picks.
+//!         seed: u64 [check::parsed] { default "0", heading "Method" },
+//!     }
+//! }
+//! ```
+//!
+//! This generates the clap/serde struct `UncertaintyParams` (the inputs, `--profile`, then
+//! one `Option<CLI type>` per parameter, so that an unset one takes the profile's value; its
+//! help ends in `[paper 0.5, release 0.3; official-release §11 row 5]`), the settings
+//! struct `UncertaintySettings` (the profile, then one field of the settings type per
+//! parameter, then the `copied` fields), `UncertaintySettings::defaults(profile)` and
+//! `UncertaintyParams::resolve()`. A given value becomes a setting through [`FromGiven`]:
+//! unchanged, or `0` meaning "off" (`None`) where the settings type is an `Option`. Both
+//! structs serialise in declaration order with kebab-case names (the tables' provenance
+//! records both). `copied` fields (e.g. a seed) have one value whatever the profile and go
+//! to the settings unchanged.
+//!
+//! A new stage (the optimiser's ~40 parameters, say) declares its block the same way in its
+//! own `params.rs`: inputs, then one line per parameter with the §11 row, then `copied`;
+//! its extra checks belong in a [`check`] parser so that clap reports them by option name.
 
 /// Which defaults a stage's unset parameters take (official-release.md, Sec. 11).
 #[derive(
@@ -118,6 +164,53 @@ pub mod check {
         if v >= 1 { Ok(v) } else { Err("must be at least 1".into()) }
     }
 
+    /// A finite `f32` (`NaN` and infinities are rejected).
+    pub fn finite32(s: &str) -> Result<f32, String> {
+        let v: f32 = number(s)?;
+        if v.is_finite() { Ok(v) } else { Err(format!("{v} is not a finite number")) }
+    }
+
+    /// A percentile in [0, 100].
+    pub fn percentile(s: &str) -> Result<f32, String> {
+        let v = finite32(s)?;
+        if (0.0..=100.0).contains(&v) { Ok(v) } else { Err(format!("{v} must be in [0, 100]")) }
+    }
+
+    /// A finite number at least 0.
+    pub fn non_negative(s: &str) -> Result<f64, String> {
+        let v = finite(s)?;
+        if v >= 0.0 { Ok(v) } else { Err(format!("{v} must be a non-negative number")) }
+    }
+
+    /// Three positive numbers `x,y,z`.
+    pub fn triple(s: &str) -> Result<[f64; 3], String> {
+        let v: Vec<f64> = s.split(',').map(number).collect::<Result<_, _>>()?;
+        match v[..] {
+            [x, y, z] if v.iter().all(|c| c.is_finite() && *c > 0.0) => Ok([x, y, z]),
+            _ => Err(format!("'{s}': expected three positive numbers x,y,z")),
+        }
+    }
+
+    /// Any value with a `FromStr` (counts, flags, and the stages' own value types).
+    pub fn parsed<T: std::str::FromStr>(s: &str) -> Result<T, String>
+    where
+        T::Err: std::fmt::Display,
+    {
+        s.trim().parse().map_err(|e| format!("'{s}': {e}"))
+    }
+
+    /// One of a `clap::ValueEnum`'s spellings.
+    pub fn choice<T: clap::ValueEnum>(s: &str) -> Result<T, String> {
+        T::from_str(s.trim(), false).map_err(|_| {
+            let names: Vec<String> = T::value_variants()
+                .iter()
+                .filter_map(|v| v.to_possible_value())
+                .map(|v| v.get_name().to_string())
+                .collect();
+            format!("'{s}' is not one of {}", names.join(", "))
+        })
+    }
+
     /// A share of a total: a count above 0, or a percentage in (0%, 100%].
     pub fn share(s: &str) -> Result<Amount, String> {
         match s.parse::<Amount>()? {
@@ -126,6 +219,195 @@ pub mod check {
             _ => Err(format!("'{s}' must be a count above 0 or a percentage in (0%, 100%]")),
         }
     }
+}
+
+/// How a given command-line value becomes a setting: unchanged, or `0` meaning "off".
+pub trait FromGiven<C>: Sized {
+    /// The setting for the given value `c`.
+    fn from_given(c: C) -> Self;
+}
+
+impl<T> FromGiven<T> for T {
+    fn from_given(c: T) -> T {
+        c
+    }
+}
+
+impl FromGiven<f32> for Option<f32> {
+    fn from_given(c: f32) -> Self {
+        (c != 0.0).then_some(c)
+    }
+}
+
+impl FromGiven<f64> for Option<f64> {
+    fn from_given(c: f64) -> Self {
+        (c != 0.0).then_some(c)
+    }
+}
+
+impl FromGiven<usize> for Option<usize> {
+    fn from_given(c: usize) -> Self {
+        (c != 0).then_some(c)
+    }
+}
+
+/// The setting a declared default spells (`name` for the message): a declaration error,
+/// caught by every stage's profile test, hence a panic rather than a user-facing error.
+pub fn declared<C, S: FromGiven<C>>(
+    name: &str,
+    spelled: &str,
+    parse: fn(&str) -> Result<C, String>,
+) -> S {
+    match parse(spelled) {
+        Ok(c) => S::from_given(c),
+        Err(e) => panic!("the declared default of {name}, '{spelled}', does not parse: {e}"),
+    }
+}
+
+/// A parameter's help: its doc lines, then `[paper X, release Y; official-release §11 row N]`.
+pub fn help(doc: &[&str], paper: &str, release: &str, row: &str) -> String {
+    let text: Vec<&str> = doc.iter().map(|l| l.trim()).collect();
+    let row =
+        if row.is_empty() { String::new() } else { format!("; official-release §11 row {row}") };
+    let text = text.join(" ");
+    format!("{} [paper {paper}, release {release}{row}]", text.trim_end_matches('.'))
+}
+
+/// One declaration per stage parameter generates the stage's clap arguments, its settings,
+/// their defaults per profile and their resolution (see the module doc for an example).
+#[macro_export]
+macro_rules! stage_params {
+    (
+        $(#[doc = $pdoc:literal])*
+        pub struct $params:ident;
+        $(#[doc = $sdoc:literal])*
+        pub struct $settings:ident;
+        inputs {
+            $(
+                $(#[$iattr:meta])*
+                $iname:ident: $ity:ty,
+            )*
+        }
+        params {
+            $(
+                $(#[doc = $doc:literal])*
+                $name:ident: $cty:ty => $sty:ty [$parse:expr] {
+                    paper $paper:literal, release $release:literal,
+                    row $row:literal, heading $heading:literal $(,)?
+                },
+            )*
+        }
+        copied {
+            $(
+                $(#[doc = $cdoc:literal])*
+                $cname:ident: $ccty:ty [$cparse:expr] {
+                    default $cdefault:literal, heading $cheading:literal $(,)?
+                },
+            )*
+        }
+    ) => {
+        $(#[doc = $pdoc])*
+        #[derive(Debug, Clone, clap::Args, serde::Serialize)]
+        #[serde(rename_all = "kebab-case")]
+        pub struct $params {
+            $(
+                $(#[$iattr])*
+                pub $iname: $ity,
+            )*
+            /// Which defaults the unset parameters take.
+            #[arg(long, value_enum, default_value_t = $crate::stages::params::Profile::Paper, help_heading = "Method")]
+            pub profile: $crate::stages::params::Profile,
+            $(
+                $(#[doc = $doc])*
+                #[arg(
+                    long,
+                    value_parser = { let f: fn(&str) -> Result<$cty, String> = $parse; f },
+                    help = $crate::stages::params::help(&[$($doc),*], $paper, $release, $row),
+                    help_heading = $heading
+                )]
+                pub $name: Option<$cty>,
+            )*
+            $(
+                $(#[doc = $cdoc])*
+                #[arg(
+                    long,
+                    value_parser = { let f: fn(&str) -> Result<$ccty, String> = $cparse; f },
+                    default_value = $cdefault,
+                    help_heading = $cheading
+                )]
+                pub $cname: $ccty,
+            )*
+        }
+
+        $(#[doc = $sdoc])*
+        #[derive(Debug, Clone, PartialEq, serde::Serialize)]
+        #[serde(rename_all = "kebab-case")]
+        pub struct $settings {
+            /// The profile the defaults came from.
+            pub profile: $crate::stages::params::Profile,
+            $(
+                $(#[doc = $doc])*
+                pub $name: $sty,
+            )*
+            $(
+                $(#[doc = $cdoc])*
+                pub $cname: $ccty,
+            )*
+        }
+
+        impl $settings {
+            /// The defaults of `profile` (the declared paper or release values; `copied`
+            /// fields their one default).
+            pub fn defaults(profile: $crate::stages::params::Profile) -> Self {
+                let paper = profile == $crate::stages::params::Profile::Paper;
+                $settings {
+                    profile,
+                    $(
+                        $name: $crate::stages::params::declared::<$cty, $sty>(
+                            stringify!($name),
+                            if paper { $paper } else { $release },
+                            $parse,
+                        ),
+                    )*
+                    $(
+                        $cname: $crate::stages::params::declared::<$ccty, $ccty>(
+                            stringify!($cname),
+                            $cdefault,
+                            $cparse,
+                        ),
+                    )*
+                }
+            }
+        }
+
+        impl $params {
+            /// The profile's defaults with the given values applied.
+            pub fn resolve(&self) -> anyhow::Result<$settings> {
+                let d = $settings::defaults(self.profile);
+                Ok($settings {
+                    profile: self.profile,
+                    $(
+                        $name: match &self.$name {
+                            Some(v) => $crate::stages::params::FromGiven::from_given(v.clone()),
+                            None => d.$name,
+                        },
+                    )*
+                    $(
+                        $cname: self.$cname.clone(),
+                    )*
+                })
+            }
+        }
+    };
+}
+
+/// A stage's arguments parsed from a command line without the binary name (unit tests).
+#[cfg(test)]
+pub(crate) fn parse_args<A: clap::Args + clap::FromArgMatches>(
+    args: &[&str],
+) -> Result<A, clap::Error> {
+    let cmd = A::augment_args(clap::Command::new("test").no_binary_name(true));
+    A::from_arg_matches(&cmd.try_get_matches_from(args)?)
 }
 
 #[cfg(test)]

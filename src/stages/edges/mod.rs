@@ -42,7 +42,7 @@ use rayon::prelude::*;
 use super::graph::metric::{MetricForm, apply};
 use super::graph::search::{self, KeyFrames};
 use super::graph::tracks::Tracks;
-use super::params::Profile;
+use super::params::check;
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -51,9 +51,7 @@ use crate::tables::key_nodes::{KeyNodes, Role};
 const KEY_TREE_LEAF: usize = 8;
 
 /// How key → key neighbours are chosen (profile row 26; ablation (b)).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum KeyEdgeMode {
     /// UA-kNN, Eq. 7 (paper).
@@ -69,9 +67,7 @@ pub enum KeyEdgeMode {
 }
 
 /// Weights of key → key edges (profile row 27).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum KeyEdgeWeights {
     /// exp(−β·cv²) of the pair distance's coefficient of variation over time.
@@ -81,9 +77,7 @@ pub enum KeyEdgeWeights {
 }
 
 /// How non-key Gaussians are attached to keys (profile row 30).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum NonkeyAssignMode {
     /// Eq. 8, then E_i = E_j ∪ {j} (paper).
@@ -92,173 +86,72 @@ pub enum NonkeyAssignMode {
     KnnMaxDist,
 }
 
-/// Parameters of `usplat4d edges`; unset values take the profile's defaults.
-#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
-pub struct EdgeParams {
-    /// Model directory (gaussians.parquet + trajectories.parquet).
-    #[arg(long, value_name = "MODEL_DIR")]
-    pub model: PathBuf,
-    /// Directory holding uncertainty.parquet.
-    #[arg(long, value_name = "DIR")]
-    pub uncertainty: PathBuf,
-    /// Directory holding key_nodes.parquet.
-    #[arg(long, value_name = "DIR")]
-    pub keynodes: PathBuf,
-    /// Output directory (edges.parquet).
-    #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
-    /// Scene directory: the training cameras' rotations for the anisotropic metric (Eq. 6);
-    /// required by the paper's Mahalanobis modes unless r is isotropic.
-    #[arg(long, value_name = "SCENE_DIR")]
-    #[serde(default)]
-    pub scene: Option<PathBuf>,
-    /// Which defaults the unset parameters take.
-    #[arg(long, value_enum, default_value_t = Profile::Paper, help_heading = "Method")]
-    #[serde(default)]
-    pub profile: Profile,
-    /// Key → key mode [paper ua-knn, release minmax-distance].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub key_edge_mode: Option<KeyEdgeMode>,
-    /// Neighbours per key [paper 8, release 120].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub key_knn_k: Option<usize>,
-    /// Key edge weights [paper rigidity, release uniform].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub key_edge_weights: Option<KeyEdgeWeights>,
-    /// β of the rigidity weights exp(−β·cv²) [50].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub rigidity_sharpness: Option<f64>,
-    /// Non-key assignment [paper argmin-sum-mahalanobis, release knn-max-dist].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub nonkey_assign_mode: Option<NonkeyAssignMode>,
-    /// Keys per non-key in `knn-max-dist` [5].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub nonkey_k: Option<usize>,
-    /// λ of the non-key weights exp(−λ d²) [100].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub nonkey_weight_sharpness: Option<f64>,
-    /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
-    /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) [paper weight, release inverse
-    /// (unused by its edges)].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub metric_form: Option<MetricForm>,
-    /// Anisotropy r_x,r_y,r_z of Eq. 6 [paper 1,1,0.01; release 1,1,0.1 (unused by its
-    /// edges)].
-    #[arg(long, value_delimiter = ',', help_heading = "Method")]
-    #[serde(default)]
-    pub r_xyz: Option<Vec<f64>>,
-    /// Confidence mask of the release modes: normalised contribution > c, i.e. u < 1/c [2].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub contrib_threshold: Option<f32>,
-}
-
-/// Concrete settings of edge construction (recorded in the table's provenance).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub struct EdgeSettings {
-    /// The profile the defaults came from.
-    pub profile: Profile,
-    /// Key → key mode.
-    pub key_edge_mode: KeyEdgeMode,
-    /// Neighbours per key.
-    pub key_knn_k: usize,
-    /// Key edge weights.
-    pub key_edge_weights: KeyEdgeWeights,
-    /// β of the rigidity weights.
-    pub rigidity_sharpness: f64,
-    /// Non-key assignment.
-    pub nonkey_assign_mode: NonkeyAssignMode,
-    /// Keys per non-key (`knn-max-dist`).
-    pub nonkey_k: usize,
-    /// λ of the non-key weights.
-    pub nonkey_weight_sharpness: f64,
-    /// Form of the norm of Eqs. 7-8.
-    pub metric_form: MetricForm,
-    /// Anisotropy of Eq. 6.
-    pub r_xyz: [f64; 3],
-    /// Release confidence mask threshold on the normalised contribution.
-    pub contrib_threshold: f32,
+crate::stage_params! {
+    /// Parameters of `usplat4d edges`; unset values take the profile's defaults.
+    pub struct EdgeParams;
+    /// Concrete settings of edge construction (recorded in the table's provenance).
+    pub struct EdgeSettings;
+    inputs {
+        /// Model directory (gaussians.parquet + trajectories.parquet).
+        #[arg(long, value_name = "MODEL_DIR")]
+        model: PathBuf,
+        /// Directory holding uncertainty.parquet.
+        #[arg(long, value_name = "DIR")]
+        uncertainty: PathBuf,
+        /// Directory holding key_nodes.parquet.
+        #[arg(long, value_name = "DIR")]
+        keynodes: PathBuf,
+        /// Output directory (edges.parquet).
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+        /// Scene directory: the training cameras' rotations for the anisotropic metric (Eq. 6);
+        /// required by the paper's Mahalanobis modes unless r is isotropic.
+        #[arg(long, value_name = "SCENE_DIR")]
+        scene: Option<PathBuf>,
+    }
+    params {
+        /// Key → key mode (ua-knn, euclidean, minmax-distance, max-contrib, max-native).
+        key_edge_mode: KeyEdgeMode => KeyEdgeMode [check::choice]
+            { paper "ua-knn", release "minmax-distance", row "26", heading "Method" },
+        /// Neighbours per key.
+        key_knn_k: usize => usize [check::count]
+            { paper "8", release "120", row "25", heading "Method" },
+        /// Key edge weights (rigidity, uniform).
+        key_edge_weights: KeyEdgeWeights => KeyEdgeWeights [check::choice]
+            { paper "rigidity", release "uniform", row "27", heading "Method" },
+        /// β of the rigidity weights exp(−β·cv²).
+        rigidity_sharpness: f64 => f64 [check::parsed]
+            { paper "50", release "50", row "", heading "Method" },
+        /// Non-key assignment (argmin-sum-mahalanobis, knn-max-dist).
+        nonkey_assign_mode: NonkeyAssignMode => NonkeyAssignMode [check::choice]
+            { paper "argmin-sum-mahalanobis", release "knn-max-dist", row "30", heading "Method" },
+        /// Keys per non-key in `knn-max-dist`.
+        nonkey_k: usize => usize [check::count]
+            { paper "5", release "5", row "31", heading "Method" },
+        /// λ of the non-key weights exp(−λ d²).
+        nonkey_weight_sharpness: f64 => f64 [check::parsed]
+            { paper "100", release "100", row "32", heading "Method" },
+        /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
+        /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) (unused by the release's edges).
+        metric_form: MetricForm => MetricForm [check::choice]
+            { paper "weight", release "inverse", row "16", heading "Method" },
+        /// Anisotropy r_x,r_y,r_z of Eq. 6 (unused by the release's edges).
+        r_xyz: [f64; 3] => [f64; 3] [check::triple]
+            { paper "1,1,0.01", release "1,1,0.1", row "15", heading "Method" },
+        /// Confidence mask of the release modes: normalised contribution > c, i.e. u < 1/c.
+        contrib_threshold: f32 => f32 [check::positive]
+            { paper "2", release "2", row "14", heading "Method" },
+    }
+    copied {}
 }
 
 impl EdgeSettings {
-    /// The defaults of `profile` (official-release.md Sec. 11, rows 15, 25-34).
-    pub fn defaults(profile: Profile) -> Self {
-        let paper = profile == Profile::Paper;
-        EdgeSettings {
-            profile,
-            key_edge_mode: if paper { KeyEdgeMode::UaKnn } else { KeyEdgeMode::MinmaxDistance },
-            key_knn_k: if paper { 8 } else { 120 },
-            key_edge_weights: if paper {
-                KeyEdgeWeights::Rigidity
-            } else {
-                KeyEdgeWeights::Uniform
-            },
-            rigidity_sharpness: 50.0,
-            nonkey_assign_mode: if paper {
-                NonkeyAssignMode::ArgminSumMahalanobis
-            } else {
-                NonkeyAssignMode::KnnMaxDist
-            },
-            nonkey_k: 5,
-            nonkey_weight_sharpness: 100.0,
-            metric_form: if paper { MetricForm::Weight } else { MetricForm::Inverse },
-            r_xyz: if paper { [1.0, 1.0, 0.01] } else { [1.0, 1.0, 0.1] },
-            contrib_threshold: 2.0,
-        }
-    }
-
     /// Whether the settings use the anisotropic metric (and so need camera rotations).
     pub fn needs_rotations(&self) -> bool {
         let aniso = self.r_xyz[0] != self.r_xyz[1] || self.r_xyz[1] != self.r_xyz[2];
         aniso
             && (self.key_edge_mode == KeyEdgeMode::UaKnn
                 || self.nonkey_assign_mode == NonkeyAssignMode::ArgminSumMahalanobis)
-    }
-}
-
-impl EdgeParams {
-    /// The profile's defaults with the overrides applied.
-    pub fn resolve(&self) -> anyhow::Result<EdgeSettings> {
-        let d = EdgeSettings::defaults(self.profile);
-        let r_xyz = match &self.r_xyz {
-            None => d.r_xyz,
-            Some(v) if v.len() == 3 && v.iter().all(|x| x.is_finite() && *x > 0.0) => {
-                [v[0], v[1], v[2]]
-            }
-            Some(v) => anyhow::bail!("r-xyz: expected three positive numbers, got {v:?}"),
-        };
-        let s = EdgeSettings {
-            profile: self.profile,
-            key_edge_mode: self.key_edge_mode.unwrap_or(d.key_edge_mode),
-            key_knn_k: self.key_knn_k.unwrap_or(d.key_knn_k),
-            key_edge_weights: self.key_edge_weights.unwrap_or(d.key_edge_weights),
-            rigidity_sharpness: self.rigidity_sharpness.unwrap_or(d.rigidity_sharpness),
-            nonkey_assign_mode: self.nonkey_assign_mode.unwrap_or(d.nonkey_assign_mode),
-            nonkey_k: self.nonkey_k.unwrap_or(d.nonkey_k),
-            nonkey_weight_sharpness: self
-                .nonkey_weight_sharpness
-                .unwrap_or(d.nonkey_weight_sharpness),
-            metric_form: self.metric_form.unwrap_or(d.metric_form),
-            r_xyz,
-            contrib_threshold: self.contrib_threshold.unwrap_or(d.contrib_threshold),
-        };
-        if s.key_knn_k == 0 || s.nonkey_k == 0 {
-            anyhow::bail!("key-knn-k and nonkey-k must be at least 1");
-        }
-        if s.contrib_threshold.is_nan() || s.contrib_threshold <= 0.0 {
-            anyhow::bail!("contrib-threshold must be positive, got {}", s.contrib_threshold);
-        }
-        Ok(s)
     }
 }
 
@@ -589,6 +482,7 @@ mod tests {
     use crate::stages::graph::search::{argmin_sum_brute, knn_max_brute};
     use crate::stages::graph::tracks::synthetic_tracks;
     use crate::stages::keynodes::{KeynodeSettings, select};
+    use crate::stages::params::{Profile, parse_args};
 
     fn setup(profile: Profile) -> (Tracks, Vec<DMat3>, KeyNodes) {
         let (tracks, rotations, _) = synthetic_tracks(1500, 16, 3, 9);
@@ -706,24 +600,20 @@ mod tests {
         );
         assert!(p.needs_rotations() && !r.needs_rotations());
         assert_eq!((p.metric_form, r.metric_form), (MetricForm::Weight, MetricForm::Inverse));
-        let yaml = "model: m\nuncertainty: u\nkeynodes: k\nout: o\nkey-edge-mode: euclidean\nr-xyz: [1, 1, 0.5]\nmetric-form: inverse\n";
-        let o: EdgeParams = serde_saphyr::from_str(yaml).unwrap();
+        let base = ["--model", "m", "--uncertainty", "u", "--keynodes", "k", "--out", "o"];
+        let given =
+            ["--key-edge-mode", "euclidean", "--r-xyz", "1,1,0.5", "--metric-form", "inverse"];
+        let o: EdgeParams = parse_args(&[&base[..], &given[..]].concat()).unwrap();
         let s = o.resolve().unwrap();
         assert_eq!((s.key_edge_mode, s.r_xyz), (KeyEdgeMode::Euclidean, [1.0, 1.0, 0.5]));
         assert_eq!(s.metric_form, MetricForm::Inverse);
-        let bad: EdgeParams = serde_saphyr::from_str(
-            "model: m\nuncertainty: u\nkeynodes: k\nout: o\nr-xyz: [1, 0]\n",
-        )
-        .unwrap();
-        assert_eq!(
-            bad.resolve().unwrap_err().to_string(),
-            "r-xyz: expected three positive numbers, got [1.0, 0.0]"
-        );
+        let err = parse_args::<EdgeParams>(&[&base[..], &["--r-xyz", "1,0"]].concat())
+            .unwrap_err()
+            .to_string();
         assert!(
-            serde_saphyr::from_str::<EdgeParams>(
-                "model: m\nuncertainty: u\nkeynodes: k\nout: o\nk: 3\n"
-            )
-            .is_err()
+            err.contains("--r-xyz") && err.contains("expected three positive numbers"),
+            "{err}"
         );
+        assert!(parse_args::<EdgeParams>(&[&base[..], &["--k", "3"]].concat()).is_err());
     }
 }

@@ -65,7 +65,7 @@ use std::path::PathBuf;
 use rayon::prelude::*;
 
 use super::graph::tracks::Tracks;
-use super::params::{Amount, Profile, check};
+use super::params::{Amount, check};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
 use crate::util::rng::rank_key;
@@ -83,8 +83,8 @@ const STREAM_BUDGET: u64 = u64::MAX - 1;
 const STREAM_CAP: u64 = u64::MAX;
 
 /// Edge of the candidate voxel grid (profile row 19).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize, serde::Serialize)]
-#[serde(try_from = "String", into = "String")]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[serde(into = "String")]
 pub enum VoxelSize {
     /// The finest rung of a ladder of edges whose keys fit `key-budget` (module doc).
     Auto,
@@ -117,13 +117,6 @@ impl std::fmt::Display for VoxelSize {
     }
 }
 
-impl TryFrom<String> for VoxelSize {
-    type Error = String;
-    fn try_from(s: String) -> Result<Self, String> {
-        s.parse()
-    }
-}
-
 impl From<VoxelSize> for String {
     fn from(v: VoxelSize) -> String {
         v.to_string()
@@ -131,8 +124,8 @@ impl From<VoxelSize> for String {
 }
 
 /// The most non-keys kept in the graph (profile row 33).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
-#[serde(try_from = "String", into = "String")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(into = "String")]
 pub enum NonkeyCap {
     /// No cap (paper).
     None,
@@ -179,13 +172,6 @@ impl std::fmt::Display for NonkeyCap {
     }
 }
 
-impl TryFrom<String> for NonkeyCap {
-    type Error = String;
-    fn try_from(s: String) -> Result<Self, String> {
-        s.parse()
-    }
-}
-
 impl From<NonkeyCap> for String {
     fn from(c: NonkeyCap) -> String {
         c.to_string()
@@ -194,9 +180,7 @@ impl From<NonkeyCap> for String {
 
 /// What happens to the non-keys that the cap or the minimum contribution leaves out
 /// (profile row 35).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum UnselectedNonkeys {
     /// Deleted from the model at the start of training (role `culled`; release).
@@ -206,9 +190,7 @@ pub enum UnselectedNonkeys {
 }
 
 /// How one Gaussian is picked in an occupied voxel (profile row 20).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum VoxelPick {
     /// Uniformly at random (seeded).
@@ -218,9 +200,7 @@ pub enum VoxelPick {
 }
 
 /// Where the per-frame candidate pool comes from (ablation (a) of the paper's Table 3).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CandidateSource {
     /// The most confident Gaussians (lowest u).
@@ -230,9 +210,7 @@ pub enum CandidateSource {
 }
 
 /// How candidates are thinned out of the pool (ablation (d) of the paper's Table 3).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum CandidateSampling {
     /// One per occupied voxel of the 3D grid.
@@ -242,9 +220,7 @@ pub enum CandidateSampling {
 }
 
 /// How the significant period counts frames (profile row 21).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SptCounting {
     /// Longest run of consecutive significant frames.
@@ -253,188 +229,72 @@ pub enum SptCounting {
     Total,
 }
 
-/// Parameters of `usplat4d keynodes`; unset values take the profile's defaults.
-#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
-pub struct KeynodeParams {
-    /// Model directory (gaussians.parquet + trajectories.parquet).
-    #[arg(long, value_name = "MODEL_DIR")]
-    pub model: PathBuf,
-    /// Directory holding uncertainty.parquet.
-    #[arg(long, value_name = "DIR")]
-    pub uncertainty: PathBuf,
-    /// Output directory (key_nodes.parquet).
-    #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
-    /// Which defaults the unset parameters take.
-    #[arg(long, value_enum, default_value_t = Profile::Paper, help_heading = "Method")]
-    #[serde(default)]
-    pub profile: Profile,
-    /// Confident Gaussians per frame: a count or a percentage of N [paper 2%, release 1000].
-    #[arg(long, value_parser = check::share, help_heading = "Method")]
-    #[serde(default)]
-    pub candidates_per_frame: Option<Amount>,
-    /// Voxel edge: world units, a percentage of the frame's bounding-box diagonal, or
-    /// `auto` (the finest edge whose keys fit `key-budget`) [paper auto, release 0.2].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub voxel_size: Option<VoxelSize>,
-    /// Key count targeted by `voxel-size auto`: a count or a percentage of N [paper 2%
-    /// (1:49 key/non-key), release 1500].
-    #[arg(long, value_parser = check::share, help_heading = "Method")]
-    #[serde(default)]
-    pub key_budget: Option<Amount>,
-    /// Pick within a voxel [paper random, release lowest-contribution].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub voxel_pick: Option<VoxelPick>,
-    /// Candidate pool (ablation (a): uniform) [uncertainty].
-    #[arg(long, value_enum, help_heading = "Ablations")]
-    #[serde(default)]
-    pub candidate_source: Option<CandidateSource>,
-    /// Candidate thinning (ablation (d): random) [voxel].
-    #[arg(long, value_enum, help_heading = "Ablations")]
-    #[serde(default)]
-    pub candidate_sampling: Option<CandidateSampling>,
-    /// Significant-period counting [paper consecutive, release total].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub spt_counting: Option<SptCounting>,
-    /// Upper cap on the per-frame significance threshold of u [paper none, release 2, i.e.
-    /// normalised contribution 0.5].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub spt_u_max: Option<f32>,
-    /// Minimum significant period, frames [5].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub min_significant_period: Option<u32>,
-    /// Cap on the number of keys, 0 for none [paper none, release 1500].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub max_key_nodes: Option<usize>,
-    /// Most non-keys kept in the graph: a count, `none`, or `by-frames` (36,000 if T > 350,
-    /// 72,000 if T > 40, else 150,000) [paper none, release by-frames].
-    #[arg(long, help_heading = "Non-keys")]
-    #[serde(default)]
-    pub nonkey_cap: Option<NonkeyCap>,
-    /// A non-key stays in the graph only if its largest contribution max_t 1/u_{i,t}
-    /// exceeds this, 0 for no minimum [paper 0, release 0.01].
-    #[arg(long, help_heading = "Non-keys")]
-    #[serde(default)]
-    pub nonkey_min_contrib: Option<f64>,
-    /// Non-keys left out of the graph: deleted at the start of training, or kept without
-    /// edges [paper keep (none are left out), release cull].
-    #[arg(long, value_enum, help_heading = "Non-keys")]
-    #[serde(default)]
-    pub unselected_nonkeys: Option<UnselectedNonkeys>,
-    /// Seed of the random picks.
-    #[arg(long, default_value_t = 0, help_heading = "Method")]
-    #[serde(default)]
-    pub seed: u64,
-}
-
-/// Concrete settings of key-node selection (recorded in the table's provenance).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub struct KeynodeSettings {
-    /// The profile the defaults came from.
-    pub profile: Profile,
-    /// Confident Gaussians per frame.
-    pub candidates_per_frame: Amount,
-    /// Voxel edge.
-    pub voxel_size: VoxelSize,
-    /// Key count targeted by `voxel-size auto`.
-    pub key_budget: Amount,
-    /// Pick within a voxel.
-    pub voxel_pick: VoxelPick,
-    /// Candidate pool.
-    pub candidate_source: CandidateSource,
-    /// Candidate thinning.
-    pub candidate_sampling: CandidateSampling,
-    /// Significant-period counting.
-    pub spt_counting: SptCounting,
-    /// Cap on the per-frame significance threshold (infinite for none).
-    pub spt_u_max: f32,
-    /// Minimum significant period.
-    pub min_significant_period: u32,
-    /// Cap on the number of keys (`None`: no cap).
-    pub max_key_nodes: Option<usize>,
-    /// Most non-keys kept in the graph.
-    pub nonkey_cap: NonkeyCap,
-    /// Minimum largest contribution of a non-key kept in the graph (`None`: no minimum).
-    pub nonkey_min_contrib: Option<f64>,
-    /// Fate of the non-keys left out.
-    pub unselected_nonkeys: UnselectedNonkeys,
-    /// Seed.
-    pub seed: u64,
-}
-
-impl KeynodeSettings {
-    /// The defaults of `profile` (official-release.md Sec. 11, rows 18-24 and 33-35).
-    pub fn defaults(profile: Profile) -> Self {
-        let paper = profile == Profile::Paper;
-        KeynodeSettings {
-            profile,
-            candidates_per_frame: if paper {
-                Amount::Fraction(0.02)
-            } else {
-                Amount::Value(1000.0)
-            },
-            voxel_size: if paper { VoxelSize::Auto } else { VoxelSize::Fixed(Amount::Value(0.2)) },
-            key_budget: if paper { Amount::Fraction(0.02) } else { Amount::Value(1500.0) },
-            voxel_pick: if paper { VoxelPick::Random } else { VoxelPick::LowestContribution },
-            candidate_source: CandidateSource::Uncertainty,
-            candidate_sampling: CandidateSampling::Voxel,
-            spt_counting: if paper { SptCounting::Consecutive } else { SptCounting::Total },
-            spt_u_max: if paper { f32::INFINITY } else { 2.0 },
-            min_significant_period: 5,
-            max_key_nodes: if paper { None } else { Some(1500) },
-            nonkey_cap: if paper { NonkeyCap::None } else { NonkeyCap::ByFrames },
-            nonkey_min_contrib: if paper { None } else { Some(0.01) },
-            unselected_nonkeys: if paper {
-                UnselectedNonkeys::Keep
-            } else {
-                UnselectedNonkeys::Cull
-            },
-            seed: 0,
-        }
+crate::stage_params! {
+    /// Parameters of `usplat4d keynodes`; unset values take the profile's defaults.
+    pub struct KeynodeParams;
+    /// Concrete settings of key-node selection (recorded in the table's provenance).
+    pub struct KeynodeSettings;
+    inputs {
+        /// Model directory (gaussians.parquet + trajectories.parquet).
+        #[arg(long, value_name = "MODEL_DIR")]
+        model: PathBuf,
+        /// Directory holding uncertainty.parquet.
+        #[arg(long, value_name = "DIR")]
+        uncertainty: PathBuf,
+        /// Output directory (key_nodes.parquet).
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
     }
-}
-
-impl KeynodeParams {
-    /// The profile's defaults with the overrides applied.
-    pub fn resolve(&self) -> anyhow::Result<KeynodeSettings> {
-        let d = KeynodeSettings::defaults(self.profile);
-        if let Some(m) = self.nonkey_min_contrib
-            && !(m.is_finite() && m >= 0.0)
-        {
-            anyhow::bail!("nonkey-min-contrib must be a non-negative number, got {m}");
-        }
-        Ok(KeynodeSettings {
-            profile: self.profile,
-            candidates_per_frame: self.candidates_per_frame.unwrap_or(d.candidates_per_frame),
-            voxel_size: self.voxel_size.unwrap_or(d.voxel_size),
-            key_budget: self.key_budget.unwrap_or(d.key_budget),
-            voxel_pick: self.voxel_pick.unwrap_or(d.voxel_pick),
-            candidate_source: self.candidate_source.unwrap_or(d.candidate_source),
-            candidate_sampling: self.candidate_sampling.unwrap_or(d.candidate_sampling),
-            spt_counting: self.spt_counting.unwrap_or(d.spt_counting),
-            spt_u_max: self.spt_u_max.unwrap_or(d.spt_u_max),
-            min_significant_period: self.min_significant_period.unwrap_or(d.min_significant_period),
-            max_key_nodes: match self.max_key_nodes {
-                Some(0) => None,
-                Some(m) => Some(m),
-                None => d.max_key_nodes,
-            },
-            nonkey_cap: self.nonkey_cap.unwrap_or(d.nonkey_cap),
-            nonkey_min_contrib: match self.nonkey_min_contrib {
-                Some(m) => (m > 0.0).then_some(m),
-                None => d.nonkey_min_contrib,
-            },
-            unselected_nonkeys: self.unselected_nonkeys.unwrap_or(d.unselected_nonkeys),
-            seed: self.seed,
-        })
+    params {
+        /// Confident Gaussians per frame: a count or a percentage of N.
+        candidates_per_frame: Amount => Amount [check::share]
+            { paper "2%", release "1000", row "18", heading "Method" },
+        /// Voxel edge: world units, a percentage of the frame's bounding-box diagonal, or
+        /// `auto` (the finest edge whose keys fit `key-budget`).
+        voxel_size: VoxelSize => VoxelSize [check::parsed]
+            { paper "auto", release "0.2", row "19", heading "Method" },
+        /// Key count targeted by `voxel-size auto`: a count or a percentage of N (paper:
+        /// 1:49 key/non-key).
+        key_budget: Amount => Amount [check::share]
+            { paper "2%", release "1500", row "23", heading "Method" },
+        /// Pick within a voxel (random, lowest-contribution).
+        voxel_pick: VoxelPick => VoxelPick [check::choice]
+            { paper "random", release "lowest-contribution", row "20", heading "Method" },
+        /// Candidate pool (uncertainty; ablation (a): uniform).
+        candidate_source: CandidateSource => CandidateSource [check::choice]
+            { paper "uncertainty", release "uncertainty", row "", heading "Ablations" },
+        /// Candidate thinning (voxel; ablation (d): random).
+        candidate_sampling: CandidateSampling => CandidateSampling [check::choice]
+            { paper "voxel", release "voxel", row "", heading "Ablations" },
+        /// Significant-period counting (consecutive, total).
+        spt_counting: SptCounting => SptCounting [check::choice]
+            { paper "consecutive", release "total", row "21", heading "Method" },
+        /// Upper cap on the per-frame significance threshold of u (release: 2, i.e.
+        /// normalised contribution 0.5; inf for none).
+        spt_u_max: f32 => f32 [check::parsed]
+            { paper "inf", release "2", row "22", heading "Method" },
+        /// Minimum significant period, frames.
+        min_significant_period: u32 => u32 [check::parsed]
+            { paper "5", release "5", row "", heading "Method" },
+        /// Cap on the number of keys, 0 for none.
+        max_key_nodes: usize => Option<usize> [check::parsed]
+            { paper "0", release "1500", row "23", heading "Method" },
+        /// Most non-keys kept in the graph: a count, `none`, or `by-frames` (36,000 if T > 350,
+        /// 72,000 if T > 40, else 150,000).
+        nonkey_cap: NonkeyCap => NonkeyCap [check::parsed]
+            { paper "none", release "by-frames", row "33", heading "Non-keys" },
+        /// A non-key stays in the graph only if its largest contribution max_t 1/u_{i,t}
+        /// exceeds this, 0 for no minimum.
+        nonkey_min_contrib: f64 => Option<f64> [check::non_negative]
+            { paper "0", release "0.01", row "34", heading "Non-keys" },
+        /// Non-keys left out of the graph: deleted at the start of training, or kept without
+        /// edges (keep, cull; the paper leaves none out).
+        unselected_nonkeys: UnselectedNonkeys => UnselectedNonkeys [check::choice]
+            { paper "keep", release "cull", row "35", heading "Non-keys" },
+    }
+    copied {
+        /// Seed of the random picks.
+        seed: u64 [check::parsed] { default "0", heading "Method" },
     }
 }
 
@@ -815,6 +675,7 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::stages::params::{Profile, parse_args};
 
     /// N Gaussians on a line (x = i) for T frames, u given per (i, t).
     fn tracks(n: usize, nt: usize, u: impl Fn(usize, usize) -> f32) -> Tracks {
@@ -926,8 +787,12 @@ mod tests {
         );
         assert_eq!((p.max_key_nodes, r.max_key_nodes), (None, Some(1500)));
         assert_eq!(p.min_significant_period, r.min_significant_period);
-        let yaml = "model: m\nuncertainty: u\nout: o\nprofile: release\nmax-key-nodes: 0\nvoxel-size: 5%\n";
-        let o = serde_saphyr::from_str::<KeynodeParams>(yaml).unwrap().resolve().unwrap();
+        let args = "--model m --uncertainty u --out o --profile release --max-key-nodes 0 \
+                    --voxel-size 5%";
+        let o = parse_args::<KeynodeParams>(&args.split_whitespace().collect::<Vec<_>>())
+            .unwrap()
+            .resolve()
+            .unwrap();
         assert_eq!(o.max_key_nodes, None);
         assert_eq!(o.voxel_size, VoxelSize::Fixed(Amount::Fraction(0.05)));
         assert_eq!(o.voxel_pick, VoxelPick::LowestContribution);
@@ -935,15 +800,20 @@ mod tests {
         assert_eq!(o.unselected_nonkeys, UnselectedNonkeys::Cull);
         assert_eq!((p.voxel_size, p.key_budget), (VoxelSize::Auto, Amount::Fraction(0.02)));
         assert_eq!((p.nonkey_cap, p.nonkey_min_contrib), (NonkeyCap::None, None));
-        let yaml = "model: m\nuncertainty: u\nout: o\nvoxel-size: auto\nkey-budget: '300'\n\
-                    nonkey-cap: '20'\nnonkey-min-contrib: 0\nunselected-nonkeys: keep\n";
-        let o = serde_saphyr::from_str::<KeynodeParams>(yaml).unwrap().resolve().unwrap();
+        let args = "--model m --uncertainty u --out o --voxel-size auto --key-budget 300 \
+                    --nonkey-cap 20 --nonkey-min-contrib 0 --unselected-nonkeys keep";
+        let o = parse_args::<KeynodeParams>(&args.split_whitespace().collect::<Vec<_>>())
+            .unwrap()
+            .resolve()
+            .unwrap();
         assert_eq!((o.key_budget, o.nonkey_cap), (Amount::Value(300.0), NonkeyCap::Count(20)));
         assert_eq!(o.nonkey_min_contrib, None);
         assert_eq!(o.unselected_nonkeys, UnselectedNonkeys::Keep);
-        let bad = "model: m\nuncertainty: u\nout: o\nnonkey-min-contrib: -1\n";
-        let err = serde_saphyr::from_str::<KeynodeParams>(bad).unwrap().resolve().unwrap_err();
-        assert_eq!(err.to_string(), "nonkey-min-contrib must be a non-negative number, got -1");
+        let bad = ["--model", "m", "--uncertainty", "u", "--out", "o"];
+        let err = parse_args::<KeynodeParams>(&[&bad[..], &["--nonkey-min-contrib=-1"]].concat())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("--nonkey-min-contrib") && err.contains("non-negative"), "{err}");
         assert_eq!("by-frames".parse::<NonkeyCap>().unwrap().of(351), Some(36_000));
         assert_eq!(NonkeyCap::ByFrames.of(350), Some(72_000));
         assert_eq!(NonkeyCap::ByFrames.of(40), Some(150_000));

@@ -26,7 +26,7 @@
 
 use std::path::PathBuf;
 
-use super::params::{Profile, check};
+use super::params::check;
 use crate::context::Context;
 use crate::render::{
     ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, RenderAux, RenderCamera,
@@ -36,9 +36,7 @@ use crate::tables::uncertainty::UncertaintyFrame;
 use crate::util::{filter, stats};
 
 /// Which pixels a Gaussian's convergence indicator tests (profile row 4).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Gate {
     /// Product over all covered pixels (paper).
@@ -48,9 +46,7 @@ pub enum Gate {
 }
 
 /// How the L1 colour error combines channels (profile row 6).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ChannelReduce {
     /// ‖C̄ − C‖₁ summed over RGB (paper).
@@ -60,9 +56,7 @@ pub enum ChannelReduce {
 }
 
 /// Which Gaussians get an uncertainty (profile row 3).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Scope {
     /// Every Gaussian (paper).
@@ -71,152 +65,55 @@ pub enum Scope {
     DynamicOnly,
 }
 
-/// Parameters of `usplat4d uncertainty`; unset values take the profile's defaults.
-#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
-pub struct UncertaintyParams {
-    /// Model directory (gaussians.parquet + trajectories.parquet).
-    #[arg(long, value_name = "MODEL_DIR")]
-    pub model: PathBuf,
-    /// Scene directory (cameras.parquet and the training images).
-    #[arg(long, value_name = "SCENE_DIR")]
-    pub scene: PathBuf,
-    /// Output directory (uncertainty.parquet).
-    #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
-    /// Which defaults the unset parameters take.
-    #[arg(long, value_enum, default_value_t = Profile::Paper, help_heading = "Method")]
-    #[serde(default)]
-    pub profile: Profile,
-    /// Colour-error threshold η_c, in (0, 1] [paper 0.5, release 0.3].
-    #[arg(long, value_parser = check::unit, help_heading = "Method")]
-    #[serde(default)]
-    pub eta_c: Option<f32>,
-    /// Pixels tested [paper all-covered-pixels, release centre-pixel].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub gate: Option<Gate>,
-    /// Channel reduction of the L1 error [paper sum, release mean].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub channel_reduce: Option<ChannelReduce>,
-    /// SSIM gate threshold, 0 for off [paper off, release 0.01].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub ssim_gate: Option<f32>,
-    /// Depth-edge gate percentile, 0 for off [paper off, release 90].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub depth_edge_percentile: Option<f32>,
-    /// Foreground-mask gate [paper false, release true].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub fg_mask_gate: Option<bool>,
-    /// φ, the uncertainty of unconverged or unseen Gaussians [1e8].
-    #[arg(long, value_parser = check::positive, help_heading = "Method")]
-    #[serde(default)]
-    pub phi: Option<f32>,
-    /// Gaussians listed [paper all, release dynamic-only].
-    #[arg(long, value_enum, help_heading = "Method")]
-    #[serde(default)]
-    pub scope: Option<Scope>,
-    /// Contribution normalisation target, 0 for off [paper off, release 0.5].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub contrib_norm_target: Option<f32>,
-    /// Clip of the normalised contribution [10].
-    #[arg(long, value_parser = check::positive, help_heading = "Method")]
-    #[serde(default)]
-    pub contrib_clip_max: Option<f32>,
-}
-
-/// Concrete settings (recorded in the table's provenance).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub struct UncertaintySettings {
-    /// The profile the defaults came from.
-    pub profile: Profile,
-    /// η_c.
-    pub eta_c: f32,
-    /// Pixels tested.
-    pub gate: Gate,
-    /// Channel reduction.
-    pub channel_reduce: ChannelReduce,
-    /// SSIM gate threshold (`None`: off).
-    pub ssim_gate: Option<f32>,
-    /// Depth-edge percentile (`None`: off).
-    pub depth_edge_percentile: Option<f32>,
-    /// Foreground-mask gate.
-    pub fg_mask_gate: bool,
-    /// φ.
-    pub phi: f32,
-    /// Gaussians listed.
-    pub scope: Scope,
-    /// Normalisation target (`None`: off).
-    pub contrib_norm_target: Option<f32>,
-    /// Normalisation clip.
-    pub contrib_clip_max: f32,
-}
-
-impl UncertaintySettings {
-    /// The defaults of `profile` (official-release.md Sec. 11, rows 2-12).
-    pub fn defaults(profile: Profile) -> Self {
-        let paper = profile == Profile::Paper;
-        UncertaintySettings {
-            profile,
-            eta_c: if paper { 0.5 } else { 0.3 },
-            gate: if paper { Gate::AllCoveredPixels } else { Gate::CentrePixel },
-            channel_reduce: if paper { ChannelReduce::Sum } else { ChannelReduce::Mean },
-            ssim_gate: if paper { None } else { Some(0.01) },
-            depth_edge_percentile: if paper { None } else { Some(90.0) },
-            fg_mask_gate: !paper,
-            phi: 1e8,
-            scope: if paper { Scope::All } else { Scope::DynamicOnly },
-            contrib_norm_target: if paper { None } else { Some(0.5) },
-            contrib_clip_max: 10.0,
-        }
+crate::stage_params! {
+    /// Parameters of `usplat4d uncertainty`; unset values take the profile's defaults.
+    pub struct UncertaintyParams;
+    /// Concrete settings (recorded in the table's provenance).
+    pub struct UncertaintySettings;
+    inputs {
+        /// Model directory (gaussians.parquet + trajectories.parquet).
+        #[arg(long, value_name = "MODEL_DIR")]
+        model: PathBuf,
+        /// Scene directory (cameras.parquet and the training images).
+        #[arg(long, value_name = "SCENE_DIR")]
+        scene: PathBuf,
+        /// Output directory (uncertainty.parquet).
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
     }
-}
-
-impl UncertaintyParams {
-    /// The profile's defaults with the overrides applied (0 turns a threshold off).
-    pub fn resolve(&self) -> anyhow::Result<UncertaintySettings> {
-        let d = UncertaintySettings::defaults(self.profile);
-        let off = |v: Option<f32>, d: Option<f32>| match v {
-            Some(0.0) => None,
-            Some(x) => Some(x),
-            None => d,
-        };
-        let s = UncertaintySettings {
-            profile: self.profile,
-            eta_c: self.eta_c.unwrap_or(d.eta_c),
-            gate: self.gate.unwrap_or(d.gate),
-            channel_reduce: self.channel_reduce.unwrap_or(d.channel_reduce),
-            ssim_gate: off(self.ssim_gate, d.ssim_gate),
-            depth_edge_percentile: off(self.depth_edge_percentile, d.depth_edge_percentile),
-            fg_mask_gate: self.fg_mask_gate.unwrap_or(d.fg_mask_gate),
-            phi: self.phi.unwrap_or(d.phi),
-            scope: self.scope.unwrap_or(d.scope),
-            contrib_norm_target: off(self.contrib_norm_target, d.contrib_norm_target),
-            contrib_clip_max: self.contrib_clip_max.unwrap_or(d.contrib_clip_max),
-        };
-        if !(s.phi.is_finite() && s.phi > 0.0) {
-            anyhow::bail!("phi must be positive and finite, got {}", s.phi);
-        }
-        if s.eta_c.is_nan()
-            || s.eta_c <= 0.0
-            || s.contrib_clip_max.is_nan()
-            || s.contrib_clip_max <= 0.0
-        {
-            anyhow::bail!("eta-c and contrib-clip-max must be positive");
-        }
-        if let Some(p) = s.depth_edge_percentile
-            && !(0.0..=100.0).contains(&p)
-        {
-            anyhow::bail!("depth-edge-percentile must be in [0, 100], got {p}");
-        }
-        Ok(s)
+    params {
+        /// Colour-error threshold η_c, in (0, 1].
+        eta_c: f32 => f32 [check::unit]
+            { paper "0.5", release "0.3", row "5", heading "Method" },
+        /// Pixels tested (all-covered-pixels, centre-pixel).
+        gate: Gate => Gate [check::choice]
+            { paper "all-covered-pixels", release "centre-pixel", row "4", heading "Method" },
+        /// Channel reduction of the L1 error (sum, mean).
+        channel_reduce: ChannelReduce => ChannelReduce [check::choice]
+            { paper "sum", release "mean", row "6", heading "Method" },
+        /// SSIM gate threshold, 0 for off (`None`).
+        ssim_gate: f32 => Option<f32> [check::finite32]
+            { paper "0", release "0.01", row "7", heading "Method" },
+        /// Depth-edge gate percentile, 0 for off (`None`).
+        depth_edge_percentile: f32 => Option<f32> [check::percentile]
+            { paper "0", release "90", row "8", heading "Method" },
+        /// Foreground-mask gate.
+        fg_mask_gate: bool => bool [check::parsed]
+            { paper "false", release "true", row "9", heading "Method" },
+        /// φ, the uncertainty of unconverged or unseen Gaussians.
+        phi: f32 => f32 [check::positive]
+            { paper "1e8", release "1e8", row "10", heading "Method" },
+        /// Gaussians listed (all, dynamic-only).
+        scope: Scope => Scope [check::choice]
+            { paper "all", release "dynamic-only", row "3", heading "Method" },
+        /// Contribution normalisation target, 0 for off (`None`).
+        contrib_norm_target: f32 => Option<f32> [check::finite32]
+            { paper "0", release "0.5", row "11", heading "Method" },
+        /// Clip of the normalised contribution.
+        contrib_clip_max: f32 => f32 [check::positive]
+            { paper "10", release "10", row "12", heading "Method" },
     }
+    copied {}
 }
 
 /// Eq. 4: the per-pixel pass map `[H, W]` of ‖C̄ − C‖₁ < η_c for two `[H, W, 3]` images.
@@ -477,6 +374,7 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::stages::params::Profile;
 
     fn aux(sum_w2: Vec<f32>, n_pixels: Vec<u32>) -> RenderAux {
         let n = sum_w2.len();
