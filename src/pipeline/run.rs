@@ -50,10 +50,11 @@ impl Executor for InProcess {
             self.ctx
                 .warn(format!("stage `{}`: --threads is ignored inside a pipeline", stage.name));
         }
-        let ctx = Context {
-            quiet: cli.quiet || self.ctx.quiet || self.ctx.verbose == 0,
-            verbose: cli.verbose.max(self.ctx.verbose.saturating_sub(1)),
-        };
+        let ctx = self.ctx.with_flags(
+            cli.quiet || self.ctx.quiet || self.ctx.verbose == 0,
+            cli.verbose.max(self.ctx.verbose.saturating_sub(1)),
+            cli.device,
+        );
         let previous = std::env::current_dir()?;
         let base = if base.as_os_str().is_empty() { Path::new(".") } else { base };
         std::env::set_current_dir(base).map_err(|e| anyhow::anyhow!("{}: {e}", base.display()))?;
@@ -151,6 +152,12 @@ impl<'a> Runner<'a> {
         let hasher = Hasher::with_cache(state.join("stat-cache.json"));
         let cache = RunCache::new(state.join("cache"), cache_max_bytes);
         Ok(Runner { p, dag, lock, hasher, cache })
+    }
+
+    /// Key every stage by the renderer that runs it (`cpu` or `gpu:<adapter>`), so that a
+    /// GPU output is never restored as a CPU one or the reverse.
+    pub fn set_device(&mut self, tag: &str) {
+        self.hasher.set_device(tag);
     }
 
     /// Decide every stage without running anything: `(stage index, outcome)` in order.

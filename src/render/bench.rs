@@ -1,5 +1,5 @@
-//! `usplat4d bench render`: forward and forward+backward timings of the CPU rasterizer on
-//! seeded random clouds (see [`super::synthetic::cloud`]), printed as a Markdown table.
+//! `usplat4d bench render`: forward and forward+backward timings of the rasterizer of
+//! `--device` (CPU by default on machines without a hardware GPU) on seeded random clouds (see [`super::synthetic::cloud`]), printed as a Markdown table.
 //! Meaningful only in a release build.
 //!
 //! Columns: N Gaussians; M tile-Gaussian intersections; blended (Gaussian, pixel) pairs
@@ -11,8 +11,8 @@ use std::time::Instant;
 
 use super::synthetic::{camera, cloud};
 use super::{
-    ColorSource, CpuRenderer, DifferentiableRenderer, ImageGrads, RasterPass, RenderSettings,
-    Renderer, SplatInputs,
+    ColorSource, DifferentiableRenderer, ImageGrads, RasterPass, RenderSettings, Renderer,
+    SplatInputs,
 };
 
 /// Parameters of `usplat4d bench render`.
@@ -86,11 +86,13 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
     if cfg!(debug_assertions) {
         ctx.warn("debug build: timings are not meaningful (use cargo build --release)");
     }
+    let r = ctx.renderer()?;
     let cam = camera(p.width, p.height);
     let settings = RenderSettings::default();
     let (w, h) = (p.width as usize, p.height as usize);
     println!(
-        "CPU rasterizer, {}x{}, depth complexity {}, {} threads, median of {}",
+        "{} rasterizer, {}x{}, depth complexity {}, {} threads, median of {}",
+        r.tag(),
         p.width,
         p.height,
         p.depth_complexity,
@@ -115,7 +117,7 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
             features: &[],
             num_features: 0,
         };
-        let warm = CpuRenderer.render(&cam, &inputs, &settings)?;
+        let warm = r.render(&cam, &inputs, &settings)?;
         let blended: u64 = warm.aux.n_pixels.iter().map(|&v| v as u64).sum();
         let v = ImageGrads {
             color: vec![1e-3; w * h * 3],
@@ -126,17 +128,17 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
         let c0 = cpu_ms();
         for _ in 0..p.repeats {
             let t0 = Instant::now();
-            std::hint::black_box(CpuRenderer.render(&cam, &inputs, &settings)?);
+            std::hint::black_box(r.render(&cam, &inputs, &settings)?);
             fwd.push(t0.elapsed().as_secs_f64() * 1e3);
         }
         let c1 = cpu_ms();
         for _ in 0..p.repeats {
             let t0 = Instant::now();
             let (_, saved) =
-                CpuRenderer.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward)?;
-            std::hint::black_box(CpuRenderer.backward(&cam, &inputs, &settings, &saved, &v)?);
+                r.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward)?;
+            std::hint::black_box(r.backward(&cam, &inputs, &settings, &saved, &v)?);
             both.push(t0.elapsed().as_secs_f64() * 1e3);
-            pairs = saved.isect.keys.len();
+            pairs = saved.num_pairs();
         }
         let c2 = cpu_ms();
         let per = |a: Option<f64>, b: Option<f64>| match (a, b) {

@@ -20,7 +20,7 @@ use crate::context::Context;
 use crate::image_io::{Image, write_atomic, write_npy_f32, write_png};
 use crate::model::{FrameState, Model};
 use crate::render::{
-    ColorSource, CpuRenderer, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame,
+    ColorSource, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame,
     SplatInputs,
 };
 use crate::scene::{Camera, Scene, Split};
@@ -142,7 +142,7 @@ fn depth_rel_path(c: &Camera) -> String {
 }
 
 fn render_frame(
-    renderer: &CpuRenderer,
+    renderer: &dyn Renderer,
     model: &Model,
     state: &FrameState,
     cam: &Camera,
@@ -204,7 +204,7 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
         ctx.warn("some cameras have lens distortion; the renderer ignores it (pinhole)");
     }
     let bar = ctx.progress(cams.len() as u64, "render");
-    let renderer = CpuRenderer;
+    let renderer = ctx.renderer()?;
     for (&frame, cs) in &by_frame {
         let state = model.frame(frame as usize)?;
         for cam in cs {

@@ -440,7 +440,8 @@ pub struct FrameTruth<'a> {
 /// The stage's work on one frame once its inputs are loaded: one render of the whole model
 /// from the training camera, Eq. 4's pass map with the release gates, the convergence
 /// indicator from that same render (no second render), then Eqs. 3 and 5.
-pub fn frame_work(
+pub fn frame_work<R: DifferentiableRenderer>(
+    renderer: &R,
     t: u32,
     camera: &RenderCamera,
     inputs: &SplatInputs,
@@ -449,7 +450,6 @@ pub fn frame_work(
     rows: &[usize],
     s: &UncertaintySettings,
 ) -> Result<UncertaintyFrame, crate::render::Error> {
-    let renderer = CpuRenderer;
     let (out, saved) = renderer.render_with_saved(camera, inputs, settings, RasterPass::Forward)?;
     let (w, h) = (out.width, out.height);
     let mut pass = pixel_pass(&out.color, truth.rgb, s.eta_c, s.channel_reduce);
@@ -548,6 +548,7 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     let settings = RenderSettings::default();
     let mut frames = Vec::with_capacity(cams.len());
     let mut warned_depth = false;
+    let renderer = ctx.renderer()?;
     let bar = ctx.progress(cams.len() as u64, "uncertainty");
     for (t, cam) in cams.iter().enumerate() {
         let state = model.frame(t)?;
@@ -569,7 +570,7 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
         }
         let truth = loaded.view();
         let camera = RenderCamera::from(*cam);
-        let frame = frame_work(t as u32, &camera, &inputs, &settings, &truth, &rows, &s)
+        let frame = frame_work(&renderer, t as u32, &camera, &inputs, &settings, &truth, &rows, &s)
             .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
         frames.push(frame);
         bar.inc(1);
