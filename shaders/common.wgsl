@@ -1,3 +1,4 @@
+// file: common.wgsl
 // Shared declarations of the rasterizer's kernels (prepended to every shader module).
 // Mirrors src/render/constants.rs and src/render/blend.rs: the same thresholds, the same
 // Cephes-style exp and the same left-to-right evaluation order, so that the GPU makes the

@@ -1,3 +1,4 @@
+// file: convergence.wgsl
 // Convergence tests on a finished forward pass (mirror of forward.rs::failing_pairs and
 // cpu.rs::centre_pass). `fail_pairs`: per tile, each failing pixel's thread marks every
 // Gaussian blended into it (list position < last contributor, α > 0). `centre`: one thread

@@ -1,3 +1,4 @@
+// file: geometry.wgsl
 // Projection geometry shared by `project` and `project_bwd` (project.rs::proj_state).
 
 struct ProjState {

@@ -1,3 +1,4 @@
+// file: isect.wgsl
 // Stages `isect_tiles` (emit) and `tile_ranges` (mirrors of src/render/isect.rs).
 // emit: one thread per Gaussian writes its (tile, depth bits, index) pairs at its prefix-sum
 // offset, in Gaussian order, so that the stable radix sort orders ties by index as the CPU.

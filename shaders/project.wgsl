@@ -1,3 +1,4 @@
+// file: project.wgsl
 // Stage `project` (mirror of src/render/project.rs::project_one) and the per-Gaussian channel
 // values (cpu.rs::channels: SH colour, depth, features), one thread per Gaussian.
 // Also writes the Gaussian's tile count (isect.rs::TileGrid::tile_rect) for the prefix sum,

@@ -1,3 +1,4 @@
+// file: project_bwd.wgsl
 // VJPs of the channel construction (SH colour, depth, features) and of `project`, one thread
 // per Gaussian (mirror of cpu.rs::project_backward and project.rs::project_vjp). Output
 // `[N, 14 + K·3 + F]`: mean 3, quat 4, scale 3, opacity 1, colour/dc 3, SH rest K·3,

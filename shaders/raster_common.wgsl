@@ -1,3 +1,4 @@
+// file: raster_common.wgsl
 // Tile batches shared by the per-tile kernels: one workgroup of 16x16 threads per tile,
 // one thread per pixel; the tile's depth-sorted Gaussians are staged in workgroup memory
 // 256 at a time.

@@ -1,3 +1,4 @@
+// file: rasterize_bwd.wgsl
 // Stage `rasterize_bwd` (mirror of src/render/backward.rs): each pixel's thread walks its
 // tile's list back to front from its last contributor, recovering each earlier
 // transmittance as T / (1 − α), with the CPU's per-pixel arithmetic. Per-Gaussian gradients

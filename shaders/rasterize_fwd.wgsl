@@ -1,3 +1,4 @@
+// file: rasterize_fwd.wgsl
 // Stage `rasterize_fwd` (mirror of src/render/forward.rs): each pixel's thread walks its
 // tile's list front to back with the CPU's arithmetic (blend.rs::alpha_parts, the same
 // termination test), accumulating Σ T·α·c in place, the final transmittance and the last
@@ -17,6 +18,9 @@
 var<workgroup> acc_w2: array<atomic<u32>, 256>;
 var<workgroup> acc_w: array<atomic<u32>, 256>;
 var<workgroup> acc_n: array<atomic<u32>, 256>;
+// Pixels of the tile that stopped blending (or lie outside the image).
+var<workgroup> n_done: atomic<u32>;
+var<workgroup> sh_done: u32;
 
 fn shared_add(which: u32, slot: u32, v: f32) {
     if (which == 0u) {
@@ -49,8 +53,12 @@ fn main(
     let p = py * P.img_w + px;
     if (lin == 0u) {
         sh_range = vec2<u32>(tile_offsets[tile], tile_offsets[tile + 1u]);
+        atomicStore(&n_done, 0u);
     }
     let range = workgroupUniformLoad(&sh_range);
+    if (!inside) {
+        atomicAdd(&n_done, 1u);
+    }
     if (inside) {
         for (var q = 0u; q < P.nc; q++) {
             img[p * P.nc + q] = 0.0;
@@ -82,6 +90,7 @@ fn main(
             let next_t = t * (1.0 - alpha);
             if (next_t <= T_THRESHOLD) {
                 done = true;
+                atomicAdd(&n_done, 1u);
                 continue;
             }
             let wgt = alpha * t;
@@ -105,7 +114,13 @@ fn main(
                 stats_add(gid * 4u + 2u, f32(n));
             }
         }
-        workgroupBarrier();
+        // Also the barrier before the next batch overwrites the staged Gaussians.
+        if (lin == 0u) {
+            sh_done = atomicLoad(&n_done);
+        }
+        if (workgroupUniformLoad(&sh_done) == 256u) {
+            break;
+        }
     }
     if (inside) {
         final_t[p] = t;

@@ -1,3 +1,4 @@
+// file: scan.wgsl
 // Exclusive prefix sum of u32 in blocks of 256 (Hillis-Steele in workgroup memory); the
 // block totals are scanned by the next level and added back (`add`).
 

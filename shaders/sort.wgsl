@@ -1,3 +1,4 @@
+// file: sort.wgsl
 // One pass of a stable LSD radix sort (4 bits) of (key_hi, key_lo, value) triples by 4 bits
 // of key_lo (word 0) or key_hi (word 1). `count`: per-block digit histograms, digit-major,
 // so that one exclusive scan gives every (digit, block) its output offset; `scatter`: each

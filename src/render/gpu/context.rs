@@ -10,7 +10,8 @@ use std::borrow::Cow;
 
 use super::super::Error;
 
-/// Kernel sources, concatenated per module (WGSL has no includes).
+/// Kernel sources, concatenated per module (WGSL has no includes). Built in; for kernel
+/// development, `USPLAT4D_SHADER_DIR=shaders` reads them from disk at start instead.
 mod src {
     pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
     pub const GEOMETRY: &str = include_str!("../../../shaders/geometry.wgsl");
@@ -139,8 +140,19 @@ impl GpuContext {
 impl Kernels {
     fn new(device: &wgpu::Device, fa: bool) -> Kernels {
         use Bind::{R, U, W};
+        let dir = std::env::var_os("USPLAT4D_SHADER_DIR").map(std::path::PathBuf::from);
         let k = |name: &str, parts: &[&str], binds: &[Bind], entries: &[&'static str]| {
-            kernel(device, name, &parts.concat(), binds, entries)
+            let source: String = match &dir {
+                None => parts.concat(),
+                Some(d) => parts
+                    .iter()
+                    .map(|p| match p.lines().next().and_then(|l| l.strip_prefix("// file: ")) {
+                        Some(f) => std::fs::read_to_string(d.join(f)).unwrap_or_else(|_| p.to_string()),
+                        None => p.to_string(),
+                    })
+                    .collect(),
+            };
+            kernel(device, name, &source, binds, entries)
         };
         let stats = atomic_prelude(fa, &["stats"]);
         let grads = atomic_prelude(fa, &["grads"]);
@@ -156,13 +168,13 @@ impl Kernels {
             sort: k("sort", &[src::SORT], &[U, R, R, R, R, W, W, W, W], &["count", "scatter"]),
             fwd: k(
                 "rasterize_fwd",
-                &[src::COMMON, src::RASTER_COMMON, &stats, src::FWD],
+                &[src::COMMON, src::RASTER_COMMON, stats.as_str(), src::FWD],
                 &[U, R, R, R, R, W, W, W, W],
                 &["main"],
             ),
             bwd: k(
                 "rasterize_bwd",
-                &[src::COMMON, src::RASTER_COMMON, &grads, src::BWD],
+                &[src::COMMON, src::RASTER_COMMON, grads.as_str(), src::BWD],
                 &[U, R, R, R, R, R, R, R, W, W],
                 &["main"],
             ),
