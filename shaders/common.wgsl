@@ -58,21 +58,20 @@ fn is_finite(v: f32) -> bool {
     return (bitcast<u32>(v) & 0x7f800000u) != 0x7f800000u;
 }
 
-// exp(x) for x <= 0: blend.rs::exp_neg, operation for operation.
+// exp(x) for x <= 0: blend.rs::exp_neg, operation for operation, except that n = round(x·log2 e)
+// and 2ⁿ are computed with round() and ldexp() instead of the 1.5·2²³ trick, which shader
+// compilers may reassociate away (SPIR-V float operations are not exact).
 fn exp_neg(x_in: f32) -> f32 {
-    let ROUND = 12582912.0;
     var x = -87.0;
     if (x_in > -87.0) {
         x = min(x_in, 0.0);
     }
-    let t = x * 1.442695 + ROUND;
-    let n = t - ROUND;
+    let n = round(x * 1.442695);
     let r = x - n * 0.6933594 - n * -2.1219444e-4;
     let p = ((((1.9875691e-4 * r + 1.3981999e-3) * r + 8.333452e-3) * r + 4.1665796e-2) * r
         + 1.6666665e-1) * r + 0.5;
     let e = r * r * p + r + 1.0;
-    let k = (bitcast<u32>(t) - bitcast<u32>(ROUND) + 127u) << 23u;
-    return e * bitcast<f32>(k);
+    return ldexp(e, i32(n));
 }
 
 fn ramp(raw: f32) -> f32 {

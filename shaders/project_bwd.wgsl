@@ -9,7 +9,7 @@
 @group(0) @binding(2) var<storage, read> colors: array<f32>;        // [N, color_stride]
 @group(0) @binding(3) var<storage, read> splats: array<f32>;        // [N, 12]
 @group(0) @binding(4) var<storage, read> g2d: array<f32>;           // [N, 6 + C]
-@group(0) @binding(5) var<storage, read_write> out: array<f32>;     // [N, 14 + K3 + F]
+@group(0) @binding(5) var<storage, read_write> grads_out: array<f32>;     // [N, 14 + K3 + F]
 
 // project.rs::quat_to_rotmat_vjp; v[j][i] is dL/dR[i][j].
 fn quat_to_rotmat_vjp(q: vec4<f32>, v: mat3x3<f32>) -> vec4<f32> {
@@ -43,7 +43,7 @@ fn main(
     let ostride = 14u + k3 + P.nf;
     let o = i * ostride;
     for (var k = 0u; k < ostride; k++) {
-        out[o + k] = 0.0;
+        grads_out[o + k] = 0.0;
     }
     let so = i * SPLAT_STRIDE;
     if (splats[so + 11u] == 0.0) {
@@ -93,9 +93,9 @@ fn main(
             let r = cb + 3u + (k - 1u) * 3u;
             let rest = vec3<f32>(colors[r], colors[r + 1u], colors[r + 2u]);
             let vr = y[k].x * v;
-            out[o + 14u + (k - 1u) * 3u] = vr.x;
-            out[o + 15u + (k - 1u) * 3u] = vr.y;
-            out[o + 16u + (k - 1u) * 3u] = vr.z;
+            grads_out[o + 14u + (k - 1u) * 3u] = vr.x;
+            grads_out[o + 15u + (k - 1u) * 3u] = vr.y;
+            grads_out[o + 16u + (k - 1u) * 3u] = vr.z;
             let v_y = rest.x * v.x + rest.y * v.y + rest.z * v.z;
             v_dir += v_y * y[k].yzw;
         }
@@ -168,21 +168,21 @@ fn main(
     let dq = dot(v_qn, st.q);
     let v_quat = (v_qn - dq * st.q) / norm;
 
-    out[o] = v_mean.x;
-    out[o + 1u] = v_mean.y;
-    out[o + 2u] = v_mean.z;
-    out[o + 3u] = v_quat.x;
-    out[o + 4u] = v_quat.y;
-    out[o + 5u] = v_quat.z;
-    out[o + 6u] = v_quat.w;
-    out[o + 7u] = v_scale.x;
-    out[o + 8u] = v_scale.y;
-    out[o + 9u] = v_scale.z;
-    out[o + 10u] = v_opacity;
-    out[o + 11u] = v_dc.x;
-    out[o + 12u] = v_dc.y;
-    out[o + 13u] = v_dc.z;
+    grads_out[o] = v_mean.x;
+    grads_out[o + 1u] = v_mean.y;
+    grads_out[o + 2u] = v_mean.z;
+    grads_out[o + 3u] = v_quat.x;
+    grads_out[o + 4u] = v_quat.y;
+    grads_out[o + 5u] = v_quat.z;
+    grads_out[o + 6u] = v_quat.w;
+    grads_out[o + 7u] = v_scale.x;
+    grads_out[o + 8u] = v_scale.y;
+    grads_out[o + 9u] = v_scale.z;
+    grads_out[o + 10u] = v_opacity;
+    grads_out[o + 11u] = v_dc.x;
+    grads_out[o + 12u] = v_dc.y;
+    grads_out[o + 13u] = v_dc.z;
     for (var f = 0u; f < P.nf; f++) {
-        out[o + 14u + k3 + f] = g2d[gb + 10u + f];
+        grads_out[o + 14u + k3 + f] = g2d[gb + 10u + f];
     }
 }

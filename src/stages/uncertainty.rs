@@ -30,7 +30,7 @@ use super::graph::Profile;
 use crate::context::Context;
 use crate::image_io::Image;
 use crate::render::{
-    ColorSource, ConvergenceTest, CpuRenderer, DifferentiableRenderer, RasterPass, RenderAux,
+    ColorSource, ConvergenceTest, DifferentiableRenderer, RasterPass, RenderAux,
     RenderCamera, RenderSettings, ShFrame, SplatInputs,
 };
 use crate::tables::uncertainty::UncertaintyFrame;

@@ -247,13 +247,18 @@ impl Frame {
 
     /// Fill every storage buffer with junk (NaN-like and huge bit patterns).
     pub(crate) fn fill_junk(&self, ctx: &GpuContext) {
-        for b in self.storage_buffers() {
-            let words = (b.size() / 4) as usize;
-            let junk: Vec<u32> = (0..words)
-                .map(|i| [0x7fc0_0001u32, 0xffff_fff0, 0x4f00_0000, 0xdead_beef][i % 4])
-                .collect();
-            ctx.queue.write_buffer(b, 0, bytemuck::cast_slice(&junk));
-        }
+        fill_junk(ctx, &self.storage_buffers());
+    }
+}
+
+/// Fill `buffers` with junk (NaN-like and huge bit patterns).
+pub(crate) fn fill_junk(ctx: &GpuContext, buffers: &[&wgpu::Buffer]) {
+    for b in buffers {
+        let words = (b.size() / 4) as usize;
+        let junk: Vec<u32> = (0..words)
+            .map(|i| [0x7fc0_0001u32, 0xffff_fff0, 0x4f00_0000, 0xdead_beef][i % 4])
+            .collect();
+        ctx.queue.write_buffer(b, 0, bytemuck::cast_slice(&junk));
     }
 }
 

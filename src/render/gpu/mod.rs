@@ -443,10 +443,11 @@ impl DifferentiableRenderer for GpuRenderer {
         let ctx = &*self.ctx;
         let fresh = frame.bwd.is_none();
         frame.bwd(ctx);
-        if self.junk && fresh {
-            frame.fill_junk(ctx);
-        }
+        let frame = &*frame;
         let b = frame.bwd.as_ref().expect("backward buffers");
+        if self.junk && fresh {
+            frame::fill_junk(ctx, &[&b.v_pix, &b.scratch, &b.g2d, &b.out]);
+        }
         ctx.queue.write_buffer(&b.v_pix, 0, bytemuck::cast_slice(&v_pix));
         let k = &ctx.kernels;
         let mut enc = ctx.device.create_command_encoder(&Default::default());
@@ -524,10 +525,11 @@ impl DifferentiableRenderer for GpuRenderer {
         let ctx = &*self.ctx;
         let fresh = frame.conv.is_none();
         frame.conv(ctx);
-        if self.junk && fresh {
-            frame.fill_junk(ctx);
-        }
+        let frame = &*frame;
         let c = frame.conv.as_ref().expect("convergence buffers");
+        if self.junk && fresh {
+            frame::fill_junk(ctx, &[&c.pass, &c.fail]);
+        }
         let pass: Vec<u32> = pixel_pass.iter().map(|&p| p as u32).collect();
         ctx.queue.write_buffer(&c.pass, 0, bytemuck::cast_slice(&pass));
         let k = &ctx.kernels.convergence;

@@ -111,8 +111,17 @@ fn check_forward(g: &RenderOutput, c: &RenderOutput, what: &str) -> (f32, f32) {
     ]
     .into_iter()
     .fold(0.0, f32::max);
-    assert_eq!(g.aux.visible, c.aux.visible, "{what}: visible");
-    assert_eq!(g.aux.n_pixels, c.aux.n_pixels, "{what}: n_pixels");
+    let differ = |a: &[u32], b: &[u32]| a.iter().zip(b).filter(|(x, y)| x != y).count();
+    let vis: Vec<u32> = g.aux.visible.iter().zip(&c.aux.visible).map(|(a, b)| (a != b) as u32).collect();
+    let n_vis = vis.iter().sum::<u32>();
+    let n_px = differ(&g.aux.n_pixels, &c.aux.n_pixels);
+    eprintln!(
+        "{what}: image error {img:e}, {n_vis} visible flags and {n_px} pixel counts differ (Σ gpu {} cpu {})",
+        g.aux.n_pixels.iter().sum::<u32>(),
+        c.aux.n_pixels.iter().sum::<u32>()
+    );
+    assert_eq!(n_vis, 0, "{what}: visible");
+    assert_eq!(n_px, 0, "{what}: n_pixels");
     let stats = [
         max_rel(&g.aux.sum_w2, &c.aux.sum_w2),
         max_rel(&g.aux.sum_w, &c.aux.sum_w),
