@@ -21,8 +21,8 @@ pub struct Cli {
     /// Number of worker threads (default: all cores). Results do not depend on it.
     #[arg(long, global = true, value_name = "N")]
     pub threads: Option<usize>,
-    /// Where to rasterize: `cpu` (the bit-deterministic reference), `gpu` (wgpu; software
-    /// adapters such as lavapipe count) or `auto` (default: a hardware GPU if there is one,
+    /// Where to rasterize: `cpu` (default: the bit-deterministic reference), `gpu` (wgpu;
+    /// software adapters such as lavapipe count) or `auto` (a hardware GPU if there is one,
     /// else the CPU). GPU results match the CPU within tolerances, not bitwise.
     #[arg(long, global = true, value_enum, value_name = "DEVICE")]
     pub device: Option<crate::render::gpu::Device>,

@@ -45,7 +45,8 @@ impl Context {
 
     /// The renderer the stages use (see [`Device`]); opened once per context.
     pub fn renderer(&self) -> anyhow::Result<AnyRenderer> {
-        let mut slot = self.renderer.lock().map_err(|_| anyhow::anyhow!("renderer lock poisoned"))?;
+        let mut slot =
+            self.renderer.lock().map_err(|_| anyhow::anyhow!("renderer lock poisoned"))?;
         if let Some(r) = &*slot {
             return Ok(r.clone());
         }

@@ -105,7 +105,13 @@ impl Hasher {
             .ok()
             .and_then(|b| serde_json::from_slice(&b).ok())
             .unwrap_or_default();
-        Hasher { cache_file: Some(cache_file), stamps, dirty: false, tool: None, device: String::new() }
+        Hasher {
+            cache_file: Some(cache_file),
+            stamps,
+            dirty: false,
+            tool: None,
+            device: String::new(),
+        }
     }
 
     /// Write the stat cache back if it changed, forgetting files that no longer exist.

@@ -134,8 +134,7 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
         let c1 = cpu_ms();
         for _ in 0..p.repeats {
             let t0 = Instant::now();
-            let (_, saved) =
-                r.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward)?;
+            let (_, saved) = r.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward)?;
             std::hint::black_box(r.backward(&cam, &inputs, &settings, &saved, &v)?);
             both.push(t0.elapsed().as_secs_f64() * 1e3);
             pairs = saved.num_pairs();

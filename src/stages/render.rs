@@ -20,8 +20,7 @@ use crate::context::Context;
 use crate::image_io::{Image, write_atomic, write_npy_f32, write_png};
 use crate::model::{FrameState, Model};
 use crate::render::{
-    ColorSource, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame,
-    SplatInputs,
+    ColorSource, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatInputs,
 };
 use crate::scene::{Camera, Scene, Split};
 

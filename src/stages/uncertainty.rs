@@ -30,8 +30,8 @@ use super::graph::Profile;
 use crate::context::Context;
 use crate::image_io::Image;
 use crate::render::{
-    ColorSource, ConvergenceTest, DifferentiableRenderer, RasterPass, RenderAux,
-    RenderCamera, RenderSettings, ShFrame, SplatInputs,
+    ColorSource, ConvergenceTest, DifferentiableRenderer, RasterPass, RenderAux, RenderCamera,
+    RenderSettings, ShFrame, SplatInputs,
 };
 use crate::tables::uncertainty::UncertaintyFrame;
 

@@ -118,8 +118,11 @@ impl GpuContext {
         let info = adapter.get_info();
         let float_atomics = adapter.features().contains(wgpu::Features::SHADER_FLOAT32_ATOMIC)
             && std::env::var_os("USPLAT4D_GPU_NO_FLOAT_ATOMICS").is_none();
-        let features =
-            if float_atomics { wgpu::Features::SHADER_FLOAT32_ATOMIC } else { wgpu::Features::empty() };
+        let features = if float_atomics {
+            wgpu::Features::SHADER_FLOAT32_ATOMIC
+        } else {
+            wgpu::Features::empty()
+        };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("usplat4d"),
             required_features: features,
@@ -147,7 +150,9 @@ impl Kernels {
                 Some(d) => parts
                     .iter()
                     .map(|p| match p.lines().next().and_then(|l| l.strip_prefix("// file: ")) {
-                        Some(f) => std::fs::read_to_string(d.join(f)).unwrap_or_else(|_| p.to_string()),
+                        Some(f) => {
+                            std::fs::read_to_string(d.join(f)).unwrap_or_else(|_| p.to_string())
+                        }
                         None => p.to_string(),
                     })
                     .collect(),
@@ -163,7 +168,12 @@ impl Kernels {
                 &[U, R, R, R, W, W, W, W],
                 &["main"],
             ),
-            isect: k("isect", &[src::COMMON, src::ISECT], &[U, R, R, W, W, W, W], &["emit", "ranges"]),
+            isect: k(
+                "isect",
+                &[src::COMMON, src::ISECT],
+                &[U, R, R, W, W, W, W],
+                &["emit", "ranges"],
+            ),
             scan: k("scan", &[src::SCAN], &[U, W, W], &["scan_blocks", "add_sums"]),
             sort: k("sort", &[src::SORT], &[U, R, R, R, R, W, W, W, W], &["count", "scatter"]),
             fwd: k(

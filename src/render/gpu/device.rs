@@ -1,9 +1,10 @@
 //! Renderer selection: the global `--device cpu|gpu|auto` flag and [`AnyRenderer`], the one
 //! renderer type stages hold (CPU or GPU behind the same traits).
 //!
-//! `auto` takes a hardware GPU adapter when one exists and the CPU otherwise; software
-//! adapters (Mesa's lavapipe, WARP) are used only with an explicit `--device gpu`, so `auto`
-//! stays on the deterministic CPU path in CI.
+//! The default is `cpu` (bit-deterministic, and no graphics driver is loaded). `auto` takes a
+//! hardware GPU adapter when one exists and the CPU otherwise; software adapters (Mesa's
+//! lavapipe, WARP) are used only with an explicit `--device gpu`, so `auto` stays on the
+//! deterministic CPU path in CI.
 
 use super::super::cpu::SavedForBackward;
 use super::super::{
@@ -15,12 +16,12 @@ use super::{GpuRenderer, GpuSaved};
 /// Where to rasterize.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum Device {
-    /// The CPU reference renderer (bit-deterministic).
+    /// The CPU reference renderer (bit-deterministic; the default).
+    #[default]
     Cpu,
     /// A GPU through wgpu; software adapters (lavapipe) count. An error when there is none.
     Gpu,
     /// A hardware GPU adapter if there is one, else the CPU.
-    #[default]
     Auto,
 }
 
@@ -139,8 +140,12 @@ impl DifferentiableRenderer for AnyRenderer {
         grads: &ImageGrads,
     ) -> Result<SplatGrads, Error> {
         match (self, saved) {
-            (AnyRenderer::Cpu(r), AnySaved::Cpu(s)) => r.backward(camera, inputs, settings, s, grads),
-            (AnyRenderer::Gpu(r), AnySaved::Gpu(s)) => r.backward(camera, inputs, settings, s, grads),
+            (AnyRenderer::Cpu(r), AnySaved::Cpu(s)) => {
+                r.backward(camera, inputs, settings, s, grads)
+            }
+            (AnyRenderer::Gpu(r), AnySaved::Gpu(s)) => {
+                r.backward(camera, inputs, settings, s, grads)
+            }
             _ => Err(mismatch()),
         }
     }

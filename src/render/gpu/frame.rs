@@ -275,7 +275,9 @@ impl FramePool {
     /// A frame of sizes `key` (any pair capacity ≥ `key.pair_cap`), reused when possible.
     pub(crate) fn take(&self, ctx: &GpuContext, key: FrameKey) -> Frame {
         let mut free = self.free.lock().expect("frame pool");
-        let fits = |f: &Frame| f.key == FrameKey { pair_cap: f.key.pair_cap, ..key } && f.key.pair_cap >= key.pair_cap;
+        let fits = |f: &Frame| {
+            f.key == FrameKey { pair_cap: f.key.pair_cap, ..key } && f.key.pair_cap >= key.pair_cap
+        };
         if let Some(i) = free.iter().position(fits) {
             return free.swap_remove(i);
         }
@@ -317,7 +319,11 @@ pub(crate) fn bind(
         .enumerate()
         .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
         .collect();
-    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout, entries: &entries })
+    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: None,
+        layout,
+        entries: &entries,
+    })
 }
 
 /// Workgroups for `n` blocks as a 2D grid (at most 65535 per dimension).
@@ -340,7 +346,11 @@ pub(crate) fn dispatch(
 }
 
 /// Read `len` words of a mapped-on-demand staging buffer (blocks until the GPU is done).
-pub(crate) fn read_words(ctx: &GpuContext, buf: &wgpu::Buffer, len: usize) -> Result<Vec<u32>, String> {
+pub(crate) fn read_words(
+    ctx: &GpuContext,
+    buf: &wgpu::Buffer,
+    len: usize,
+) -> Result<Vec<u32>, String> {
     let bytes = 4 * len as u64;
     let (tx, rx) = std::sync::mpsc::channel();
     buf.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {

@@ -32,7 +32,9 @@ pub use device::{AnyRenderer, AnySaved, Device};
 
 use std::sync::Arc;
 
-use frame::{Frame, FrameKey, FramePool, PooledFrame, bind, dispatch, grid, read_words, sort_passes};
+use frame::{
+    Frame, FrameKey, FramePool, PooledFrame, bind, dispatch, grid, read_words, sort_passes,
+};
 use params::ColorMode;
 
 use super::cpu::check_inputs;
@@ -146,7 +148,10 @@ impl GpuRenderer {
             }
             let out = assemble(&frame.key, settings, &words);
             let saved = GpuSaved {
-                frame: std::sync::Mutex::new(PooledFrame { frame: Some(frame), pool: self.pool.clone() }),
+                frame: std::sync::Mutex::new(PooledFrame {
+                    frame: Some(frame),
+                    pool: self.pool.clone(),
+                }),
                 sorted,
                 n,
                 width: cam.width,
@@ -224,14 +229,23 @@ impl GpuRenderer {
         );
         dispatch(&mut enc, k.project.pipeline("main"), &g, gauss_groups);
         self.scan(&mut enc, &frame.counts, &frame.count_scan);
-        let emit = |enc: &mut wgpu::CommandEncoder, half: &[wgpu::Buffer; 3], entry: &str, groups| {
-            let g = bind(
-                ctx,
-                &k.isect.layout,
-                &[&frame.params, &frame.splats, &frame.counts, &half[0], &half[1], &half[2], &frame.tile_offsets],
-            );
-            dispatch(enc, k.isect.pipeline(entry), &g, groups);
-        };
+        let emit =
+            |enc: &mut wgpu::CommandEncoder, half: &[wgpu::Buffer; 3], entry: &str, groups| {
+                let g = bind(
+                    ctx,
+                    &k.isect.layout,
+                    &[
+                        &frame.params,
+                        &frame.splats,
+                        &frame.counts,
+                        &half[0],
+                        &half[1],
+                        &half[2],
+                        &frame.tile_offsets,
+                    ],
+                );
+                dispatch(enc, k.isect.pipeline(entry), &g, groups);
+            };
         emit(&mut enc, &frame.pairs[0], "emit", gauss_groups);
         let mut cur = 0;
         let blocks = key.sort_blocks();
@@ -277,7 +291,9 @@ impl GpuRenderer {
         dispatch(&mut enc, k.fwd.pipeline("main"), &g, tiles);
         let (px, nc) = (key.pixels() as u64, key.nc as u64);
         let mut off = 0;
-        for (buf, len) in [(&frame.img, px * nc), (&frame.final_t, px), (&frame.stats, 4 * n as u64)] {
+        for (buf, len) in
+            [(&frame.img, px * nc), (&frame.final_t, px), (&frame.stats, 4 * n as u64)]
+        {
             if len > 0 {
                 enc.copy_buffer_to_buffer(buf, 0, &frame.staging, off, 4 * len);
             }
@@ -468,7 +484,12 @@ impl DifferentiableRenderer for GpuRenderer {
                 &b.g2d,
             ],
         );
-        dispatch(&mut enc, k.bwd.pipeline("main"), &g, (w.div_ceil(16) as u32, h.div_ceil(16) as u32));
+        dispatch(
+            &mut enc,
+            k.bwd.pipeline("main"),
+            &g,
+            (w.div_ceil(16) as u32, h.div_ceil(16) as u32),
+        );
         let g = bind(
             ctx,
             &k.project_bwd.layout,
@@ -515,7 +536,11 @@ impl DifferentiableRenderer for GpuRenderer {
     ) -> Result<Vec<bool>, Error> {
         let (w, h) = (cam.width as usize, cam.height as usize);
         if pixel_pass.len() != w * h {
-            return Err(Error::Shape { name: "pixel_pass", got: pixel_pass.len(), expected: w * h });
+            return Err(Error::Shape {
+                name: "pixel_pass",
+                got: pixel_pass.len(),
+                expected: w * h,
+            });
         }
         if saved.width != cam.width || saved.height != cam.height {
             return Err(Error::Settings("saved forward state belongs to another render".into()));
@@ -551,7 +576,12 @@ impl DifferentiableRenderer for GpuRenderer {
         match test {
             ConvergenceTest::AllCoveredPixels => {
                 enc.clear_buffer(&c.fail, 0, None);
-                dispatch(&mut enc, k.pipeline("fail_pairs"), &g, (w.div_ceil(16) as u32, h.div_ceil(16) as u32));
+                dispatch(
+                    &mut enc,
+                    k.pipeline("fail_pairs"),
+                    &g,
+                    (w.div_ceil(16) as u32, h.div_ceil(16) as u32),
+                );
             }
             ConvergenceTest::CentrePixel => {
                 dispatch(&mut enc, k.pipeline("centre"), &g, grid(n.div_ceil(256)));

@@ -41,7 +41,13 @@ struct Scene {
 }
 
 impl Scene {
-    fn new(cam: &RenderCamera, n: usize, complexity: f32, seed: u64, frame: Option<ShFrame>) -> Scene {
+    fn new(
+        cam: &RenderCamera,
+        n: usize,
+        complexity: f32,
+        seed: u64,
+        frame: Option<ShFrame>,
+    ) -> Scene {
         let c = cloud(cam, n, complexity, seed);
         let mut rng = SplitMix64::new(seed ^ 0x5eed);
         let (degree, nf) = if frame.is_some() { (3, 2) } else { (0, 0) };
@@ -63,7 +69,9 @@ impl Scene {
     fn inputs(&self) -> SplatInputs<'_> {
         let colors = match self.frame {
             None => ColorSource::Rgb(&self.dc),
-            Some(frame) => ColorSource::Sh { degree: self.degree, dc: &self.dc, rest: &self.rest, frame },
+            Some(frame) => {
+                ColorSource::Sh { degree: self.degree, dc: &self.dc, rest: &self.rest, frame }
+            }
         };
         SplatInputs {
             means: &self.means,
@@ -82,7 +90,8 @@ fn settings() -> RenderSettings {
 }
 
 fn tilted(w: u32, h: u32) -> RenderCamera {
-    let w2c = Mat4::from_rotation_y(0.1) * Mat4::from_translation(glam::Vec3::new(0.05, -0.02, 0.1));
+    let w2c =
+        Mat4::from_rotation_y(0.1) * Mat4::from_translation(glam::Vec3::new(0.05, -0.02, 0.1));
     RenderCamera { w2c, ..camera(w, h) }
 }
 
@@ -112,7 +121,8 @@ fn check_forward(g: &RenderOutput, c: &RenderOutput, what: &str) -> (f32, f32) {
     .into_iter()
     .fold(0.0, f32::max);
     let differ = |a: &[u32], b: &[u32]| a.iter().zip(b).filter(|(x, y)| x != y).count();
-    let vis: Vec<u32> = g.aux.visible.iter().zip(&c.aux.visible).map(|(a, b)| (a != b) as u32).collect();
+    let vis: Vec<u32> =
+        g.aux.visible.iter().zip(&c.aux.visible).map(|(a, b)| (a != b) as u32).collect();
     let n_vis = vis.iter().sum::<u32>();
     let n_px = differ(&g.aux.n_pixels, &c.aux.n_pixels);
     eprintln!(
@@ -223,8 +233,11 @@ fn fuzzed() -> (RenderCamera, Scene) {
 fn fuzzed_inputs_are_culled_as_on_the_cpu() {
     let Some(gpu) = gpu() else { return };
     let (cam, s) = fuzzed();
-    let (c, cs) = CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward).unwrap();
-    let (g, gs) = gpu.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward).unwrap();
+    let (c, cs) = CpuRenderer
+        .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward)
+        .unwrap();
+    let (g, gs) =
+        gpu.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward).unwrap();
     check_forward(&g, &c, "fuzzed");
     assert!(!g.aux.visible[..10].iter().any(|v| *v), "poisoned Gaussians must be culled");
     let v = cotangents(32, 24, 0, 4);
