@@ -1,15 +1,29 @@
-//! Run-wide settings shared by every stage: verbosity, progress bars and the renderer.
+//! Run-wide settings shared by every stage: verbosity, progress bars and the device.
 //!
 //! A [`Context`] is built once from the global CLI flags. Stages ask it for progress bars,
-//! which draw only on an interactive terminal and never with `--quiet`, and for the
-//! renderer of `--device` ([`Context::renderer`], opened once and shared).
+//! which draw only on an interactive terminal and never with `--quiet`. [`Device`] is the
+//! `--device` choice; `stages::device` opens the renderer it names.
 
 use std::io::IsTerminal;
-use std::sync::{Arc, Mutex};
 
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::render::gpu::{AnyRenderer, Device};
+/// Where to rasterize (`--device`).
+///
+/// The default is `cpu` (bit-deterministic, and no graphics driver is loaded). `auto` takes a
+/// hardware GPU adapter when one exists and the CPU otherwise; software adapters (Mesa's
+/// lavapipe, WARP) are used only with an explicit `gpu`, so `auto` stays on the
+/// deterministic CPU path in CI.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum Device {
+    /// The CPU reference renderer (bit-deterministic; the default).
+    #[default]
+    Cpu,
+    /// A GPU through wgpu; software adapters (lavapipe) count. An error when there is none.
+    Gpu,
+    /// A hardware GPU adapter if there is one, else the CPU.
+    Auto,
+}
 
 /// Global settings of one invocation.
 #[derive(Debug, Clone, Default)]
@@ -20,40 +34,12 @@ pub struct Context {
     pub verbose: u8,
     /// Where stages rasterize (`--device`).
     pub device: Device,
-    /// The renderer of `device`, opened on first use.
-    renderer: Arc<Mutex<Option<AnyRenderer>>>,
 }
 
 impl Context {
-    /// A context with these flags.
-    pub fn new(quiet: bool, verbose: u8, device: Device) -> Self {
-        Context { quiet, verbose, device, renderer: Arc::default() }
-    }
-
     /// A context that prints nothing and renders on the CPU (tests, nested pipeline runs).
     pub fn quiet() -> Self {
-        Context::new(true, 0, Device::Cpu)
-    }
-
-    /// The same context with other verbosity flags, sharing the opened renderer.
-    pub fn with_flags(&self, quiet: bool, verbose: u8, device: Option<Device>) -> Self {
-        match device {
-            Some(d) if d != self.device => Context::new(quiet, verbose, d),
-            _ => Context { quiet, verbose, ..self.clone() },
-        }
-    }
-
-    /// The renderer the stages use (see [`Device`]); opened once per context.
-    pub fn renderer(&self) -> anyhow::Result<AnyRenderer> {
-        let mut slot =
-            self.renderer.lock().map_err(|_| anyhow::anyhow!("renderer lock poisoned"))?;
-        if let Some(r) = &*slot {
-            return Ok(r.clone());
-        }
-        let r = AnyRenderer::open(self.device).map_err(|e| anyhow::anyhow!("--device: {e}"))?;
-        tracing::info!(renderer = %r.tag(), "renderer");
-        *slot = Some(r.clone());
-        Ok(r)
+        Context { quiet: true, verbose: 0, device: Device::Cpu }
     }
 
     /// A progress bar over `len` items labelled `what`; hidden when quiet or stderr is not

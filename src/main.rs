@@ -8,7 +8,8 @@ use usplat4d::context::Context;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let ctx = Context::new(cli.quiet, cli.verbose, cli.device.unwrap_or_default());
+    let ctx =
+        Context { quiet: cli.quiet, verbose: cli.verbose, device: cli.device.unwrap_or_default() };
     let level = match cli.verbose {
         0 => tracing::Level::WARN,
         1 => tracing::Level::INFO,

@@ -5,58 +5,20 @@
 //! `trajectories.parquet` (T row groups of N rows). Static Gaussians repeat their pose in
 //! every frame. Frames are read one at a time ([`Model::frame`]) so that memory stays
 //! O(N), not O(N·T).
+//!
+//! The model is also the one place that turns a frame into renderer inputs
+//! ([`Model::splat_inputs`]): the frame the SH view direction is taken in ([`ShFrame`]) is a
+//! property of the model (3DGS and SoM: world, MoSca: the Gaussian's local frame), stored
+//! in the gaussians table's metadata under [`SH_FRAME_KEY`] (absent: world).
 
 use std::path::{Path, PathBuf};
 
 use crate::tables::trajectories::{TrajectoriesTable, TrajectoryReader, TrajectoryWriter};
 use crate::tables::{self, Provenance, Table, gaussians::GaussiansTable};
 
-/// Static per-Gaussian attributes, `[N]` each, indexed by canonical position (not id).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Gaussians {
-    /// Stable `gaussian_id` of each Gaussian.
-    pub id: Vec<u32>,
-    /// Whether the Gaussian moves (dynamic) or is part of the static background.
-    pub dynamic: Vec<bool>,
-    /// Linear scales along the Gaussian's local axes, world units.
-    pub scale: Vec<[f32; 3]>,
-    /// Opacity in [0, 1].
-    pub opacity: Vec<f32>,
-    /// RGB colour of the SH degree-0 term, nominally [0, 1].
-    pub color: Vec<[f32; 3]>,
-    /// SH degree (0..=3) shared by all Gaussians.
-    pub sh_degree: u8,
-    /// Higher-order SH coefficients `[N, K, 3]` flattened, K = (degree+1)^2 - 1.
-    pub sh_rest: Vec<f32>,
-}
-
-impl Gaussians {
-    /// Number of Gaussians N.
-    pub fn len(&self) -> usize {
-        self.id.len()
-    }
-
-    /// Whether there are no Gaussians.
-    pub fn is_empty(&self) -> bool {
-        self.id.is_empty()
-    }
-
-    /// Number of `sh_rest` floats per Gaussian (3·K).
-    pub fn sh_rest_len(&self) -> usize {
-        3 * ((self.sh_degree as usize + 1).pow(2) - 1)
-    }
-}
-
-/// Pose of every Gaussian at one frame, `[N]` each, canonical order.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct FrameState {
-    /// Frame index t.
-    pub frame: u32,
-    /// World positions.
-    pub position: Vec<[f32; 3]>,
-    /// Rotations as unit quaternions `w, x, y, z` (local-to-world).
-    pub rotation: Vec<[f32; 4]>,
-}
+use crate::render::{ColorSource, ShFrame, SplatInputs};
+pub use crate::tables::gaussians::Gaussians;
+pub use crate::tables::trajectories::FrameState;
 
 /// A model directory opened for frame-by-frame reading.
 pub struct Model {
@@ -64,7 +26,23 @@ pub struct Model {
     pub dir: PathBuf,
     /// Static attributes.
     pub gaussians: Gaussians,
+    /// The frame SH colours are evaluated in.
+    pub sh_frame: ShFrame,
     trajectories: TrajectoryReader,
+}
+
+/// Key of the gaussians table's metadata that holds the model's [`ShFrame`] (`world` or
+/// `local`): a model with local-frame SH is saved with
+/// `Model::save(dir, &g, frames, &provenance.with_metadata(SH_FRAME_KEY, "local"))`.
+pub const SH_FRAME_KEY: &str = "usplat4d.sh_frame";
+
+/// The colour source of Gaussians `g` with SH evaluated in `frame` (plain RGB at degree 0).
+pub fn colors(g: &Gaussians, frame: ShFrame) -> ColorSource<'_> {
+    if g.sh_degree == 0 {
+        ColorSource::Rgb(&g.color)
+    } else {
+        ColorSource::Sh { degree: g.sh_degree, dc: &g.color, rest: &g.sh_rest, frame }
+    }
 }
 
 impl Model {
@@ -80,9 +58,38 @@ impl Model {
 
     /// Open a model directory (reads the Gaussians, validates the trajectory layout).
     pub fn load(dir: &Path) -> tables::Result<Model> {
-        let gaussians = tables::gaussians::read(&Self::gaussians_path(dir))?;
+        let path = Self::gaussians_path(dir);
+        let gaussians = tables::gaussians::read(&path)?;
+        let sh_frame = match tables::TableReader::open::<GaussiansTable>(&path)?
+            .metadata_value(SH_FRAME_KEY)
+            .as_deref()
+        {
+            None | Some("world") => ShFrame::World,
+            Some("local") => ShFrame::Local,
+            Some(other) => {
+                return Err(tables::Error::Mismatch {
+                    path,
+                    msg: format!("metadata {SH_FRAME_KEY} is '{other}', expected world or local"),
+                });
+            }
+        };
         let trajectories = TrajectoryReader::open(&Self::trajectories_path(dir), &gaussians.id)?;
-        Ok(Model { dir: dir.to_path_buf(), gaussians, trajectories })
+        Ok(Model { dir: dir.to_path_buf(), gaussians, sh_frame, trajectories })
+    }
+
+    /// The renderer inputs of frame `state`: its poses, the static attributes and the
+    /// model's colours (SH in [`Model::sh_frame`]); no feature channels.
+    pub fn splat_inputs<'a>(&'a self, state: &'a FrameState) -> SplatInputs<'a> {
+        let g = &self.gaussians;
+        SplatInputs {
+            means: &state.position,
+            quats: &state.rotation,
+            scales: &g.scale,
+            opacities: &g.opacity,
+            colors: colors(g, self.sh_frame),
+            features: &[],
+            num_features: 0,
+        }
     }
 
     /// Number of frames T.
@@ -109,5 +116,33 @@ impl Model {
             w.write(&f?)?;
         }
         w.finish()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The SH frame is read from the gaussians table (absent: world), and is what
+    /// [`Model::splat_inputs`] hands the renderer.
+    #[test]
+    fn sh_frame_is_a_model_property() {
+        let (mut g, frames) = crate::tables::tests::sample_model();
+        g.sh_degree = 1;
+        g.sh_rest = vec![0.1; g.len() * 9];
+        for (name, prov, want) in [
+            ("world", Provenance::default(), ShFrame::World),
+            ("local", Provenance::default().with_metadata(SH_FRAME_KEY, "local"), ShFrame::Local),
+        ] {
+            let dir = tempfile::tempdir().unwrap();
+            Model::save(dir.path(), &g, frames.clone().into_iter().map(Ok), &prov).unwrap();
+            let m = Model::load(dir.path()).unwrap();
+            assert_eq!(m.sh_frame, want, "{name}");
+            let state = m.frame(0).unwrap();
+            match m.splat_inputs(&state).colors {
+                ColorSource::Sh { frame, .. } => assert_eq!(frame, want),
+                ColorSource::Rgb(_) => panic!("degree 1 must render SH"),
+            }
+        }
     }
 }

@@ -4,117 +4,43 @@
 //! Layout of `SCENE_DIR`: `cameras.parquet` (all train and eval images), the image, depth
 //! and mask files it names (paths relative to `SCENE_DIR`), and optionally
 //! `tracks_3d.parquet` / `tracks_2d.parquet` (ground-truth or prior tracks).
+//! [`Scene::ground_truth`] reads one image's references for the stages that compare with it.
 
 use std::path::{Path, PathBuf};
 
-use glam::{DMat3, DMat4, DVec3};
-
 use crate::tables::{self, Provenance, Table};
 
-/// Which part of the dataset an image belongs to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Split {
-    /// The monocular training video.
-    Train,
-    /// Held-out evaluation views (DyCheck "val").
-    Eval,
-}
+use crate::formats::png::Image;
+use crate::formats::{npy, png};
+use crate::render::RenderCamera;
+pub use crate::tables::cameras::{Camera, Split};
 
-impl Split {
-    /// The name stored in the `split` column.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Split::Train => "train",
-            Split::Eval => "eval",
-        }
-    }
-
-    /// Parse a stored split name.
-    pub fn parse(s: &str) -> Option<Split> {
-        match s {
-            "train" => Some(Split::Train),
-            "eval" => Some(Split::Eval),
-            _ => None,
+/// The render camera of a scene camera (distortion is not rendered; near 0.01, far 1e10).
+impl From<&Camera> for RenderCamera {
+    fn from(c: &Camera) -> Self {
+        RenderCamera {
+            fx: c.fx as f32,
+            fy: c.fy as f32,
+            cx: c.cx as f32,
+            cy: c.cy as f32,
+            w2c: c.w2c_mat().as_mat4(),
+            width: c.width,
+            height: c.height,
+            near: 0.01,
+            far: 1e10,
         }
     }
 }
 
-/// One image's camera: a pinhole with optional distortion, OpenCV axes.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Camera {
-    /// Time index 0..T-1 of the training video this image was taken at.
-    pub frame: u32,
-    /// Camera name (e.g. `"0"` for the training camera).
-    pub camera: String,
-    /// Train or eval.
-    pub split: Split,
-    /// Focal length x, pixels.
-    pub fx: f64,
-    /// Focal length y, pixels.
-    pub fy: f64,
-    /// Principal point x, pixels (pixel centres at +0.5).
-    pub cx: f64,
-    /// Principal point y, pixels.
-    pub cy: f64,
-    /// Image width, pixels.
-    pub width: u32,
-    /// Image height, pixels.
-    pub height: u32,
-    /// World-to-camera 4x4, row-major, OpenCV axes (x right, y down, z forward).
-    pub w2c: [f64; 16],
-    /// RGB(A) PNG path relative to the scene directory.
-    pub image_path: String,
-    /// z-depth `.npy` path (float32, 0 = invalid), if any.
-    pub depth_path: Option<String>,
-    /// Mask PNG path (covisibility or foreground), if any.
-    pub mask_path: Option<String>,
-    /// Horizontal angular offset from the training camera, degrees (synthetic benchmark).
-    pub angle_offset_deg: Option<f32>,
-    /// Distortion `[k1, k2, k3, p1, p2]` when non-zero.
-    pub distortion: Option<[f64; 5]>,
-}
-
-impl Camera {
-    /// The world-to-camera matrix (glam is column-major; `w2c` is stored row-major).
-    pub fn w2c_mat(&self) -> DMat4 {
-        DMat4::from_cols_array(&self.w2c).transpose()
-    }
-
-    /// Rotation part of world-to-camera.
-    pub fn rotation(&self) -> DMat3 {
-        DMat3::from_mat4(self.w2c_mat())
-    }
-
-    /// Camera centre in world coordinates.
-    pub fn center(&self) -> DVec3 {
-        let m = self.w2c_mat();
-        m.inverse().w_axis.truncate()
-    }
-
-    /// Row-major `w2c` from a glam matrix.
-    pub fn w2c_from_mat(m: DMat4) -> [f64; 16] {
-        m.transpose().to_cols_array()
-    }
-
-    /// Pixel coordinates (pixel centres at +0.5) and z-depth of world point `p` (pinhole,
-    /// distortion applied when present). `None` when behind the camera.
-    pub fn project(&self, p: DVec3) -> Option<(f64, f64, f64)> {
-        let c = self.w2c_mat().transform_point3(p);
-        if c.z <= 1e-9 {
-            return None;
-        }
-        let (mut u, mut v) = (c.x / c.z, c.y / c.z);
-        if let Some([k1, k2, k3, p1, p2]) = self.distortion {
-            let r2 = u * u + v * v;
-            let rad = 1.0 + r2 * (k1 + r2 * (k2 + k3 * r2));
-            let du = 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u);
-            let dv = 2.0 * p2 * u * v + p1 * (r2 + 2.0 * v * v);
-            u = u * rad + du;
-            v = v * rad + dv;
-        }
-        Some((self.fx * u + self.cx, self.fy * v + self.cy, c.z))
-    }
+/// The references of one camera image, read from the scene directory.
+#[derive(Debug, Clone)]
+pub struct GroundTruth {
+    /// `[H, W, 3]` colour composited over the requested background.
+    pub rgb: Image,
+    /// `[H, W, 1]` mask (channel 0 of the mask PNG), when asked for and the camera has one.
+    pub mask: Option<Image>,
+    /// `[H, W]` z-depth (0 = invalid), when asked for and the camera has one.
+    pub depth: Option<Vec<f32>>,
 }
 
 /// The cameras of a scene directory.
@@ -183,5 +109,47 @@ impl Scene {
     /// Absolute path of a file named relative to the scene directory.
     pub fn resolve(&self, rel: &str) -> PathBuf {
         self.dir.join(rel)
+    }
+
+    /// Read the image of `cam` composited over `background`, and its mask and depth map when
+    /// asked for (and the camera has them); they must match the image's size. Errors name
+    /// the file.
+    pub fn ground_truth(
+        &self,
+        cam: &Camera,
+        background: [f32; 3],
+        with_mask: bool,
+        with_depth: bool,
+    ) -> anyhow::Result<GroundTruth> {
+        let rgb = png::read_png(&self.resolve(&cam.image_path))?.rgb_over(background);
+        let (w, h) = (rgb.width, rgb.height);
+        let mask = match (&cam.mask_path, with_mask) {
+            (Some(m), true) => {
+                let path = self.resolve(m);
+                let img = png::read_png(&path)?;
+                if (img.width, img.height) != (w, h) {
+                    anyhow::bail!(
+                        "{}: mask is {}x{}, the image is {w}x{h}",
+                        path.display(),
+                        img.width,
+                        img.height
+                    );
+                }
+                Some(img.channel(0))
+            }
+            _ => None,
+        };
+        let depth = match (&cam.depth_path, with_depth) {
+            (Some(d), true) => {
+                let path = self.resolve(d);
+                let depth = npy::read_npy_f32(&path)?.1;
+                if depth.len() != w * h {
+                    anyhow::bail!("{}: depth map is not {w}x{h}", path.display());
+                }
+                Some(depth)
+            }
+            _ => None,
+        };
+        Ok(GroundTruth { rgb, mask, depth })
     }
 }

@@ -12,7 +12,7 @@ use std::process::Command;
 use serde_json::Value;
 use usplat4d::context::Context;
 use usplat4d::datasets::dycheck::{read_camera_path, write_layout};
-use usplat4d::image_io::{self, Image};
+use usplat4d::formats::{self, png::Image};
 use usplat4d::scene::{Camera, Scene};
 
 /// The paper-windmill camera files, if shared/data is reachable.
@@ -23,7 +23,7 @@ fn windmill() -> Option<PathBuf> {
         .map(|r| root.join(r).join("real/dycheck-paper-windmill-cameras"))
         .find(|p| p.join("splits/train.json").exists());
     if found.is_none() {
-        eprintln!("skipping: shared/data/real/dycheck-paper-windmill-cameras not found");
+        eprintln!("SKIP: ../shared/data/real/dycheck-paper-windmill-cameras not found");
     }
     found
 }
@@ -125,16 +125,16 @@ fn hand_made_scene(data: &Path, dir: &Path) -> Scene {
     assert_eq!(cams.len(), 8);
     for (k, c) in cams.iter().enumerate() {
         let (w, h) = (c.width as usize, c.height as usize);
-        image_io::write_png(&dir.join(&c.image_path), &pattern(w, h, k, 4)).unwrap();
+        formats::png::write_png(&dir.join(&c.image_path), &pattern(w, h, k, 4)).unwrap();
         if let Some(d) = &c.depth_path {
             let depth: Vec<f32> = (0..w * h)
                 .map(|i| if i % 11 == 0 { 0.0 } else { 0.5 + (i % 97) as f32 * 0.01 })
                 .collect();
-            image_io::write_npy_f32(&dir.join(d), &[h, w], &depth).unwrap();
+            formats::npy::write_npy_f32(&dir.join(d), &[h, w], &depth).unwrap();
         }
         if let Some(m) = &c.mask_path {
             let mask: Vec<f32> = (0..w * h).map(|i| ((i / 5 + k) % 2) as f32).collect();
-            image_io::write_png(
+            formats::png::write_png(
                 &dir.join(m),
                 &Image { width: w, height: h, channels: 1, data: mask },
             )
@@ -155,8 +155,8 @@ fn layout_round_trip() {
 
     let cam_json = read_json(&layout.join("camera/1_00002.json"));
     assert_eq!(cam_json["image_size"], serde_json::json!([180, 240]));
-    assert_eq!(image_io::read_png(&layout.join("rgb/1x/0_00003.png")).unwrap().width, 180);
-    let (shape, _) = image_io::read_npy_f32(&layout.join("depth/2x/0_00001.npy")).unwrap();
+    assert_eq!(formats::png::read_png(&layout.join("rgb/1x/0_00003.png")).unwrap().width, 180);
+    let (shape, _) = formats::npy::read_npy_f32(&layout.join("depth/2x/0_00001.npy")).unwrap();
     assert_eq!(shape, vec![120, 90, 1]);
     let val = read_json(&layout.join("splits/val.json"));
     assert_eq!(val["frame_names"], serde_json::json!(["1_00000", "1_00001", "1_00002", "1_00003"]));
@@ -189,18 +189,19 @@ fn layout_round_trip() {
             (&a.image_path, &a.depth_path, &a.mask_path),
             (&b.image_path, &b.depth_path, &b.mask_path)
         );
-        let img = |s: &Scene, c: &Camera| image_io::read_png(&s.resolve(&c.image_path)).unwrap();
+        let img =
+            |s: &Scene, c: &Camera| formats::png::read_png(&s.resolve(&c.image_path)).unwrap();
         assert_eq!(img(&scene, a), img(&back, b));
         if let Some(d) = &a.depth_path {
             assert_eq!(
-                image_io::read_npy_f32(&scene.resolve(d)).unwrap(),
-                image_io::read_npy_f32(&back.resolve(d)).unwrap()
+                formats::npy::read_npy_f32(&scene.resolve(d)).unwrap(),
+                formats::npy::read_npy_f32(&back.resolve(d)).unwrap()
             );
         }
         if let Some(m) = &a.mask_path {
             assert_eq!(
-                image_io::read_png(&scene.resolve(m)).unwrap(),
-                image_io::read_png(&back.resolve(m)).unwrap()
+                formats::png::read_png(&scene.resolve(m)).unwrap(),
+                formats::png::read_png(&back.resolve(m)).unwrap()
             );
         }
     }
@@ -225,8 +226,8 @@ fn layout_round_trip() {
     let scale = info["scale"].as_f64().unwrap();
     assert_eq!(meta["dycheck_scene"]["scale"], scale);
     let rel = scene.cameras[0].depth_path.as_ref().unwrap();
-    let (_, d0) = image_io::read_npy_f32(&scene.resolve(rel)).unwrap();
-    let (_, d1) = image_io::read_npy_f32(&norm_dir.join(rel)).unwrap();
+    let (_, d0) = formats::npy::read_npy_f32(&scene.resolve(rel)).unwrap();
+    let (_, d1) = formats::npy::read_npy_f32(&norm_dir.join(rel)).unwrap();
     assert!(d0.iter().zip(&d1).all(|(a, b)| *b == (*a as f64 * scale) as f32));
 
     let full_dir = tmp.path().join("full");
@@ -235,7 +236,7 @@ fn layout_round_trip() {
     let full = Scene::load(&full_dir).unwrap();
     let (a, b) = (&scene.cameras[5], &full.cameras[5]);
     assert_eq!((b.width, b.height, b.fx), (2 * a.width, 2 * a.height, 2.0 * a.fx));
-    let m = image_io::read_png(&full.resolve(b.mask_path.as_ref().unwrap())).unwrap();
+    let m = formats::png::read_png(&full.resolve(b.mask_path.as_ref().unwrap())).unwrap();
     assert_eq!((m.width, m.height), (180, 240));
 }
 
@@ -420,7 +421,8 @@ fn cases() -> Vec<Case> {
             name: "image of the wrong size",
             args: &[],
             breaks: |d| {
-                image_io::write_png(&d.join("rgb/2x/0_00000.png"), &pattern(4, 3, 0, 4)).unwrap();
+                formats::png::write_png(&d.join("rgb/2x/0_00000.png"), &pattern(4, 3, 0, 4))
+                    .unwrap();
             },
             stderr: |d| {
                 format!(

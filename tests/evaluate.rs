@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use usplat4d::image_io::{Image, read_png, write_png};
+use usplat4d::formats::png::{Image, read_png, write_png};
 use usplat4d::scene::{Camera, Scene, Split};
 use usplat4d::tables::Provenance;
 
@@ -258,12 +258,15 @@ fn fail_below_exits_1_and_compare_prints_differences() {
     let o = run(&["evaluate", "--compare", s(&t.out), s(&out_b.join("metrics.parquet"))]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8(o.stdout).unwrap();
-    assert!(stdout.starts_with("# a (A) vs b (B) on scene\n"), "{stdout}");
-    let line = stdout.lines().find(|l| l.starts_with("| (60°, 120°]")).unwrap();
-    let cells: Vec<&str> = line.split('|').map(str::trim).collect();
-    let (pa, pb, d): (f64, f64, f64) =
-        (cells[3].parse().unwrap(), cells[4].parse().unwrap(), cells[5].parse().unwrap());
-    assert!(pb < pa && d < 0.0 && (pb - pa - d).abs() < 0.011, "{line}");
+    assert!(stdout.starts_with("# a vs b on scene (Δ against a)\n"), "{stdout}");
+    let cell = |method: &str, k: usize| -> f64 {
+        let line =
+            stdout.lines().find(|l| l.starts_with(&format!("| (60°, 120°] | {method} |"))).unwrap();
+        line.split('|').map(str::trim).nth(k).unwrap().parse().unwrap()
+    };
+    let (pa, pb, d) = (cell("a", 4), cell("b", 4), cell("b", 5));
+    assert!(pb < pa && d < 0.0 && (pb - pa - d).abs() < 0.011, "{stdout}");
+    assert_eq!(cell("a", 5), 0.0);
 }
 
 #[test]

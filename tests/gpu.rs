@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use usplat4d::render::synthetic::write_demo_scene;
+use usplat4d::datasets::demo::write_demo_scene;
 use usplat4d::tables::uncertainty::UncertaintyReader;
 
 /// Run `usplat4d --quiet --device <device> args...`; `None` (after a SKIP line) when the GPU
@@ -57,15 +57,15 @@ fn gpu_render_matches_the_cpu_render() {
     for cam in ["cam00", "cam01"] {
         for t in 0..2 {
             let rel = format!("rgb/{cam}/{t:05}.png");
-            let a = usplat4d::image_io::read_png(&cpu.join(&rel)).unwrap();
-            let b = usplat4d::image_io::read_png(&gpu.join(&rel)).unwrap();
+            let a = usplat4d::formats::png::read_png(&cpu.join(&rel)).unwrap();
+            let b = usplat4d::formats::png::read_png(&gpu.join(&rel)).unwrap();
             assert_eq!((a.width, a.height, a.channels), (b.width, b.height, b.channels));
             for (x, y) in a.data.iter().zip(&b.data) {
                 max_level = max_level.max((x - y).abs() * 255.0);
             }
             let rel = format!("depth/{cam}/{t:05}.npy");
-            let (_, a) = usplat4d::image_io::read_npy_f32(&cpu.join(&rel)).unwrap();
-            let (_, b) = usplat4d::image_io::read_npy_f32(&gpu.join(&rel)).unwrap();
+            let (_, a) = usplat4d::formats::npy::read_npy_f32(&cpu.join(&rel)).unwrap();
+            let (_, b) = usplat4d::formats::npy::read_npy_f32(&gpu.join(&rel)).unwrap();
             for (x, y) in a.iter().zip(&b) {
                 max_depth = max_depth.max((x - y).abs());
             }

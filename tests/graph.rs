@@ -10,9 +10,10 @@ use std::process::Command;
 
 use usplat4d::model::{FrameState, Gaussians, Model};
 use usplat4d::stages::graph::spectral::adjusted_rand_index;
-use usplat4d::stages::graph::{Rng, Tracks};
+use usplat4d::stages::graph::tracks::Tracks;
 use usplat4d::tables::Provenance;
 use usplat4d::tables::uncertainty::{UncertaintyFrame, UncertaintyWriter};
+use usplat4d::util::rng::Rng;
 
 const N: usize = 1200;
 const T: usize = 24;

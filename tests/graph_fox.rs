@@ -32,10 +32,10 @@ use std::collections::HashSet;
 use std::path::Path;
 
 use usplat4d::model::{FrameState, Model};
-use usplat4d::stages::graph::Rng;
 use usplat4d::tables::Provenance;
 use usplat4d::tables::key_nodes::{self, KeyNodes, Role};
 use usplat4d::tables::uncertainty::{UncertaintyFrame, UncertaintyReader};
+use usplat4d::util::rng::Rng;
 
 use crate::util::{Dir, repo};
 

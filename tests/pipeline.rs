@@ -1,25 +1,15 @@
 //! `usplat4d pipeline` through the real binary, in a temp dir.
 //!
 //! The error tests need no stage. The behaviour tests run real stages (`synth` with tiny
-//! settings on `shared/data/gltf/SimpleSkin.gltf`, and `inspect`); they skip with a note when
-//! the shared data is absent. The same behaviours are covered stage-independently by the unit
-//! tests in `src/pipeline/tests.rs` (test-double executor).
+//! settings on the repository's `pipelines/data/Fox.glb`, and `inspect`). The same
+//! behaviours are covered stage-independently by the unit tests in `src/pipeline/tests.rs`
+//! (test-double executor).
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 const BIN: &str = env!("CARGO_BIN_EXE_usplat4d");
-
-fn shared_gltf() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    [
-        root.join("../../shared/data/gltf/SimpleSkin.gltf"),
-        root.join("../shared/data/gltf/SimpleSkin.gltf"),
-    ]
-    .into_iter()
-    .find(|p| p.is_file())
-}
 
 /// A temp dir holding `p.yaml` (and a copy of the glTF model when asked).
 struct Dir {
@@ -33,15 +23,12 @@ impl Dir {
         Dir { tmp }
     }
 
-    /// Like `new`, with `model.gltf` copied in; `None` (test skipped) without shared data.
-    fn with_model(yaml: &str) -> Option<Dir> {
-        let Some(gltf) = shared_gltf() else {
-            eprintln!("note: shared/data/gltf/SimpleSkin.gltf not found, skipping");
-            return None;
-        };
+    /// Like `new`, with the repository's `Fox.glb` copied in as `model.glb`.
+    fn with_model(yaml: &str) -> Dir {
         let d = Dir::new(yaml);
-        std::fs::copy(gltf, d.path("model.gltf")).unwrap();
-        Some(d)
+        let fox = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/data/Fox.glb");
+        std::fs::copy(fox, d.path("model.glb")).unwrap();
+        d
     }
 
     fn path(&self, p: &str) -> PathBuf {
@@ -89,14 +76,14 @@ impl Dir {
 }
 
 const SYNTH: &str =
-    "synth --gltf model.gltf --cameras 2 --width 32 --height 32 --gaussians 200 --tracks 16";
+    "synth --gltf model.glb --cameras 2 --width 32 --height 32 --gaussians 200 --tracks 16";
 
 /// Two independent branches: synth → inspect, twice, with one frame-count parameter each.
 fn two_branches() -> String {
     format!(
         "params:\n  frames_a: 3\n  frames_b: 2\nstages:\n  \
-         synth_a:\n    cmd: {SYNTH} --frames ${{frames_a}} --out a\n    deps: [model.gltf]\n    outs: [a]\n  \
-         synth_b:\n    cmd: {SYNTH} --frames ${{frames_b}} --out b\n    deps: [model.gltf]\n    outs: [b]\n  \
+         synth_a:\n    cmd: {SYNTH} --frames ${{frames_a}} --out a\n    deps: [model.glb]\n    outs: [a]\n  \
+         synth_b:\n    cmd: {SYNTH} --frames ${{frames_b}} --out b\n    deps: [model.glb]\n    outs: [b]\n  \
          inspect:\n    foreach: [a, b]\n    do:\n      cmd: inspect ${{item}}/cameras.parquet\n      deps: ['${{item}}/cameras.parquet']\n"
     )
 }
@@ -104,7 +91,7 @@ fn two_branches() -> String {
 // Needs `synth` and `inspect`.
 #[test]
 fn second_run_of_an_unchanged_pipeline_runs_nothing() {
-    let Some(d) = Dir::with_model(&two_branches()) else { return };
+    let d = Dir::with_model(&two_branches());
     let first = d.run(&[]);
     assert_eq!(first.last().unwrap(), "4 stages: 4 run, 0 restored from run cache, 0 up to date");
     let second = d.run(&[]);
@@ -129,7 +116,7 @@ fn second_run_of_an_unchanged_pipeline_runs_nothing() {
 // Needs `synth` and `inspect`.
 #[test]
 fn changing_one_param_reruns_that_stage_and_its_downstream_only() {
-    let Some(d) = Dir::with_model(&two_branches()) else { return };
+    let d = Dir::with_model(&two_branches());
     d.run(&[]);
     let (_, status, _) = d.pipeline("status", &["--set", "frames_b=3"]);
     assert_eq!(
@@ -152,7 +139,7 @@ fn changing_one_param_reruns_that_stage_and_its_downstream_only() {
 // Needs `synth` and `inspect`.
 #[test]
 fn deleting_or_editing_an_output_reruns_its_stage() {
-    let Some(d) = Dir::with_model(&two_branches()) else { return };
+    let d = Dir::with_model(&two_branches());
     d.run(&[]);
     std::fs::remove_dir_all(d.path("a")).unwrap();
     let lines = d.run(&[]);
@@ -166,7 +153,7 @@ fn deleting_or_editing_an_output_reruns_its_stage() {
 // Needs `synth` and `inspect`.
 #[test]
 fn setting_a_param_back_restores_from_the_run_cache() {
-    let Some(d) = Dir::with_model(&two_branches()) else { return };
+    let d = Dir::with_model(&two_branches());
     d.run(&[]);
     let before = std::fs::read(d.path("a/cameras.parquet")).unwrap();
     d.run(&["--set", "frames_a=2"]);
@@ -177,14 +164,24 @@ fn setting_a_param_back_restores_from_the_run_cache() {
     assert_eq!(d.run(&[]).last().unwrap(), "all 4 stages up to date");
 }
 
-// Needs `synth`.
+// Needs `synth` and `inspect`. The second stage reads `gate.parquet`, a named pipe that no
+// one writes while the run is killed, so it cannot finish before the kill (no race with the
+// clock); the test then puts a real table there.
 #[test]
 fn a_run_killed_mid_stage_redoes_that_stage_and_keeps_finished_ones() {
     let yaml = format!(
-        "stages:\n  fast:\n    cmd: {SYNTH} --frames 2 --out fast\n    deps: [model.gltf]\n    outs: [fast]\n  \
-         slow:\n    cmd: synth --gltf model.gltf --cameras 4 --width 256 --height 256 --gaussians 20000 --tracks 64 --frames 60 --out slow\n    deps: [fast/cameras.parquet]\n    outs: [slow]\n"
+        "stages:\n  fast:\n    cmd: {SYNTH} --frames 2 --out fast\n    deps: [model.glb]\n    outs: [fast]\n  \
+         slow:\n    cmd: inspect gate.parquet\n    deps: [fast/cameras.parquet]\n"
     );
-    let Some(d) = Dir::with_model(&yaml) else { return };
+    let d = Dir::with_model(&yaml);
+    let gate = d.path("gate.parquet");
+    match Command::new("mkfifo").arg(&gate).status() {
+        Ok(s) if s.success() => {}
+        other => {
+            eprintln!("SKIP a_run_killed_mid_stage...: mkfifo is not available ({other:?})");
+            return;
+        }
+    }
     let mut child = Command::new(BIN)
         .args(["pipeline", "run"])
         .arg(d.path("p.yaml"))
@@ -202,11 +199,10 @@ fn a_run_killed_mid_stage_redoes_that_stage_and_keeps_finished_ones() {
         }
     }
     let status = child.wait().unwrap();
-    assert!(
-        !status.success(),
-        "the run finished before it could be killed (make `slow` slower): {seen:?}"
-    );
+    assert!(!status.success(), "the run was not killed: {seen:?}");
     assert_eq!(seen[0], "run  fast (never run)");
+    std::fs::remove_file(&gate).unwrap();
+    std::fs::copy(d.path("fast/cameras.parquet"), &gate).unwrap();
     let lines = d.run(&[]);
     assert_eq!(lines[0], "skip fast (up to date)");
     assert_eq!(lines[1], "run  slow (never run)");

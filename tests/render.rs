@@ -2,7 +2,7 @@
 
 use std::process::Command;
 
-use usplat4d::render::synthetic::write_demo_scene;
+use usplat4d::datasets::demo::write_demo_scene;
 
 #[test]
 fn render_cli_writes_every_image_of_a_split_and_a_manifest() {
@@ -22,8 +22,8 @@ fn render_cli_writes_every_image_of_a_split_and_a_manifest() {
     assert!(status.success());
     for cam in ["cam00", "cam01"] {
         for t in 0..2 {
-            let img =
-                usplat4d::image_io::read_png(&out.join(format!("rgb/{cam}/{t:05}.png"))).unwrap();
+            let img = usplat4d::formats::png::read_png(&out.join(format!("rgb/{cam}/{t:05}.png")))
+                .unwrap();
             assert_eq!((img.width, img.height, img.channels), (80, 60, 4));
             assert!(out.join(format!("depth/{cam}/{t:05}.npy")).exists());
         }

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use usplat4d::image_io::{read_npy_f32, read_png};
+use usplat4d::formats::{npy::read_npy_f32, png::read_png};
 use usplat4d::model::Model;
 use usplat4d::scene::{Scene, Split};
 use usplat4d::tables::tracks_2d::Tracks2dReader;
@@ -143,7 +143,7 @@ fn embedded_fox_tiny_scene() {
 #[test]
 fn shared_simple_skin_tiny_scene() {
     let Some(data) = shared_data() else {
-        eprintln!("skipped: ../shared/data not found");
+        eprintln!("SKIP shared_simple_skin_tiny_scene: ../shared/data not found");
         return;
     };
     let tmp = tempfile::tempdir().unwrap();

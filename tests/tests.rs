@@ -11,6 +11,8 @@ mod graph;
 mod graph_fox;
 mod inspect;
 mod interop;
+mod layout;
 mod pipeline;
 mod render;
+mod report;
 mod synth;

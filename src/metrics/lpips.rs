@@ -9,6 +9,7 @@
 
 pub mod network;
 pub mod pickle;
+pub mod scratch;
 pub mod weights;
 pub mod winograd;
 
@@ -20,7 +21,7 @@ pub use weights::WeightsError;
 
 use super::{Error, Result, check_pair};
 use crate::context::Context;
-use crate::image_io::Image;
+use crate::formats::png::Image;
 
 /// `usplat4d lpips ...`
 #[derive(Debug, clap::Subcommand)]
@@ -72,7 +73,7 @@ pub fn install(p: &InstallParams, ctx: &Context) -> anyhow::Result<PathBuf> {
             weights::SAFETENSORS_BLAKE3
         );
     }
-    crate::image_io::write_atomic(&out, &bytes)?;
+    crate::util::fs::write_atomic(&out, &bytes)?;
     Ok(out)
 }
 
@@ -206,7 +207,8 @@ mod tests {
             }
             Err(e) => panic!("{e}"),
         };
-        let read = |n: &str| crate::image_io::read_png(&dir.join(n)).unwrap().rgb_over([1.0; 3]);
+        let read =
+            |n: &str| crate::formats::png::read_png(&dir.join(n)).unwrap().rgb_over([1.0; 3]);
         let r = read("ex_ref.png");
         for (name, want) in [("ex_p0.png", 0.7219), ("ex_p1.png", 0.1376)] {
             let got = lpips.distance(&r, &read(name), None).unwrap();

@@ -4,18 +4,19 @@
 //! 3D end-point error, 3D PCK and DyCheck's 2D PCK-T ([`tracking`]), and their benchmark
 //! ([`bench`]).
 //!
-//! Images enter as [`crate::image_io::Image`] `[H, W, 3]` values in [0, 1] that the caller
+//! Images enter as [`crate::formats::png::Image`] `[H, W, 3]` values in [0, 1] that the caller
 //! has already composited over the background and quantised to 8 bits
-//! ([`crate::image_io::Image::quantized`]), as DyCheck's `to_quantized_float32` does.
+//! ([`crate::formats::png::Image::quantized`]), as DyCheck's `to_quantized_float32` does.
 //! Masks are `[H, W]` values in [0, 1] (1 = the pixel counts), broadcast over channels.
 
-pub mod bench;
+#[cfg(test)]
+mod dycheck_fixture;
 pub mod lpips;
 pub mod psnr;
 pub mod ssim;
 pub mod tracking;
 
-use crate::image_io::Image;
+use crate::formats::png::Image;
 
 /// Errors of the metrics (mismatched inputs, LPIPS weights).
 #[non_exhaustive]

@@ -7,7 +7,7 @@
 //! (or an all-zero mask) give `+inf`.
 
 use super::{Result, check_pair};
-use crate::image_io::Image;
+use crate::formats::png::Image;
 
 /// PSNR (dB) of `a` against `b`, both `[H, W, 3]` in [0, 1]; `mask` `[H, W]` weights the
 /// pixels (DyCheck's mPSNR) when given.

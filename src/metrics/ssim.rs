@@ -23,7 +23,7 @@
 use rayon::prelude::*;
 
 use super::{Error, Result, check_pair};
-use crate::image_io::Image;
+use crate::formats::png::Image;
 
 /// Taps of the Gaussian window.
 pub const WINDOW: usize = 11;
@@ -225,22 +225,80 @@ impl Blur {
     }
 }
 
+/// SSIM map `[H, W, 3]` of two `[H, W, 3]` images: 11×11 Gaussian window, σ = 1.5, zero
+/// ('same') padding, C1 = 0.01², C2 = 0.03². Rayon over channels and image rows; every
+/// output value is computed by one fixed sequence of operations (thread-count independent).
+pub fn ssim_map(a: &[f32], b: &[f32], w: usize, h: usize) -> Vec<f32> {
+    use rayon::prelude::*;
+    if w == 0 || h == 0 {
+        return Vec::new();
+    }
+    let g: Vec<f32> = {
+        let k: Vec<f32> =
+            (0..11).map(|i| (-((i as f32 - 5.0).powi(2)) / (2.0 * 1.5 * 1.5)).exp()).collect();
+        let s: f32 = k.iter().sum();
+        k.iter().map(|v| v / s).collect()
+    };
+    let blur = |x: &[f32]| -> Vec<f32> {
+        let mut tmp = vec![0.0; w * h];
+        tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (xx, o) in row.iter_mut().enumerate() {
+                *o = (0..11)
+                    .filter_map(|k| {
+                        (xx + k).checked_sub(5).filter(|&c| c < w).map(|c| g[k] * x[y * w + c])
+                    })
+                    .sum();
+            }
+        });
+        let mut out = vec![0.0; w * h];
+        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (xx, o) in row.iter_mut().enumerate() {
+                *o = (0..11)
+                    .filter_map(|k| {
+                        (y + k).checked_sub(5).filter(|&r| r < h).map(|r| g[k] * tmp[r * w + xx])
+                    })
+                    .sum();
+            }
+        });
+        out
+    };
+    let (c1, c2) = (0.01f32 * 0.01, 0.03f32 * 0.03);
+    let channels: Vec<Vec<f32>> = (0..3)
+        .into_par_iter()
+        .map(|c| {
+            let x: Vec<f32> = (0..w * h).map(|i| a[i * 3 + c]).collect();
+            let y: Vec<f32> = (0..w * h).map(|i| b[i * 3 + c]).collect();
+            let xx: Vec<f32> = x.iter().map(|v| v * v).collect();
+            let yy: Vec<f32> = y.iter().map(|v| v * v).collect();
+            let xy: Vec<f32> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
+            let (mx, my, sxx, syy, sxy) = (blur(&x), blur(&y), blur(&xx), blur(&yy), blur(&xy));
+            (0..w * h)
+                .map(|i| {
+                    let (vx, vy, cv) =
+                        (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
+                    ((2.0 * mx[i] * my[i] + c1) * (2.0 * cv + c2))
+                        / ((mx[i] * mx[i] + my[i] * my[i] + c1) * (vx + vy + c2))
+                })
+                .collect()
+        })
+        .collect();
+    let mut out = vec![0.0; w * h * 3];
+    for (c, m) in channels.iter().enumerate() {
+        for (i, v) in m.iter().enumerate() {
+            out[i * 3 + c] = *v;
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     /// A deterministic pseudo-random image (splitmix64).
     fn noise(w: usize, h: usize, seed: u64) -> Image {
-        let mut s = seed;
-        let data = (0..w * h * 3)
-            .map(|_| {
-                s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = s;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-            })
-            .collect();
+        let mut rng = crate::util::rng::Rng::from_state(seed);
+        let data = (0..w * h * 3).map(|_| rng.uniform_f32()).collect();
         Image { width: w, height: h, channels: 3, data }
     }
 

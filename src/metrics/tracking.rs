@@ -228,16 +228,7 @@ pub struct GtKeypoints {
 /// The renderer inputs of `model` at frame state `s` (plain degree-0 colour; colour does
 /// not matter for tracking).
 fn splat_inputs<'a>(model: &'a Model, s: &'a FrameState) -> SplatInputs<'a> {
-    let g = &model.gaussians;
-    SplatInputs {
-        means: &s.position,
-        quats: &s.rotation,
-        scales: &g.scale,
-        opacities: &g.opacity,
-        colors: ColorSource::Rgb(&g.color),
-        features: &[],
-        num_features: 0,
-    }
+    SplatInputs { colors: ColorSource::Rgb(&model.gaussians.color), ..model.splat_inputs(s) }
 }
 
 /// The states of `frames` and the render camera of each (training camera at that frame).
@@ -381,7 +372,7 @@ pub fn pck_t_model(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::{Convergence, RenderOutput};
+    use crate::render::RenderOutput;
 
     #[test]
     fn epe_and_pck_on_hand_made_points() {
@@ -441,16 +432,6 @@ mod tests {
                 }
             }
             Ok(out)
-        }
-
-        fn convergence(
-            &self,
-            _: &RenderCamera,
-            _: &SplatInputs,
-            _: &RenderSettings,
-            _: &[bool],
-        ) -> Result<Convergence, crate::render::Error> {
-            Ok(Convergence::default())
         }
     }
 

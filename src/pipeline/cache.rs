@@ -76,7 +76,7 @@ impl RunCache {
         let path = self.manifest_path(key);
         let bytes = serde_json::to_vec(m)
             .map_err(|e| Error::BadState { path: path.clone(), message: e.to_string() })?;
-        super::write_atomic(&path, &bytes)
+        Ok(crate::util::fs::write_atomic(&path, &bytes)?)
     }
 
     /// The output hashes stored under `key` (path → hash), if any.

@@ -116,3 +116,9 @@ impl Error {
         move |source| Error::Io { path, source }
     }
 }
+
+impl From<crate::util::fs::WriteError> for Error {
+    fn from(e: crate::util::fs::WriteError) -> Self {
+        Error::Io { path: e.path, source: e.source }
+    }
+}

@@ -120,7 +120,7 @@ impl Hasher {
             self.stamps.retain(|path, _| Path::new(path).exists());
             let bytes = serde_json::to_vec(&self.stamps)
                 .map_err(|e| Error::BadState { path: file.clone(), message: e.to_string() })?;
-            super::write_atomic(file, &bytes)?;
+            crate::util::fs::write_atomic(file, &bytes)?;
             self.dirty = false;
         }
         Ok(())
@@ -136,7 +136,6 @@ impl Hasher {
     /// (`0.1.0+1a2b3c4d5e6f7a8b`), so that a rebuilt binary re-runs stages even when the
     /// version number did not change, then the renderer's tag when set (`+cpu`). The
     /// executable's hash goes through the stat cache.
-
     pub fn tool_id(&mut self) -> Result<String, Error> {
         if let Some(t) = &self.tool {
             return Ok(t.clone());

@@ -94,7 +94,7 @@ impl Lock {
         let mut text = serde_json::to_string_pretty(self)
             .map_err(|e| Error::BadState { path: self.path.clone(), message: e.to_string() })?;
         text.push('\n');
-        super::write_atomic(&self.path, text.as_bytes())
+        Ok(crate::util::fs::write_atomic(&self.path, text.as_bytes())?)
     }
 }
 

@@ -20,10 +20,10 @@ pub mod status;
 mod tests;
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 pub use error::Error;
-pub use run::{Executor, InProcess, Outcome, RunOptions, Runner};
+pub use run::{Executor, Outcome, RunOptions, Runner};
 pub use spec::{Pipeline, Stage};
 
 /// `usplat4d pipeline ...`
@@ -80,22 +80,12 @@ pub struct DagArgs {
     pub dot: bool,
 }
 
-/// Write `bytes` to `path` through a temporary file in the same directory and a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&dir).map_err(Error::io(&dir))?;
-    let mut tmp =
-        tempfile::Builder::new().prefix(".tmp-").tempfile_in(&dir).map_err(Error::io(&dir))?;
-    tmp.write_all(bytes).map_err(Error::io(path))?;
-    tmp.persist(path).map_err(|e| Error::Io { path: path.into(), source: e.error })?;
-    Ok(())
-}
-
-/// Run a pipeline subcommand.
-pub fn run_command(c: &PipelineCommand, ctx: &crate::context::Context) -> anyhow::Result<()> {
+/// Run a pipeline subcommand; `pipeline run` runs its stages through `exec`.
+pub fn run_command(
+    c: &PipelineCommand,
+    exec: &mut dyn Executor,
+    ctx: &crate::context::Context,
+) -> anyhow::Result<()> {
     let stdout = std::io::stdout();
     let mut lock = stdout.lock();
     let mut sink = std::io::sink();
@@ -109,13 +99,13 @@ pub fn run_command(c: &PipelineCommand, ctx: &crate::context::Context) -> anyhow
             let opts =
                 RunOptions { force: a.force.clone(), only: a.only.clone(), dry_run: a.dry_run };
             let mut runner = Runner::open(&p, (a.cache_max_gb * 1e9) as u64, a.only.is_empty())?;
-            runner.set_device(&ctx.renderer()?.tag());
-            runner.run(&opts, &mut InProcess { ctx: ctx.clone() }, ctx, out)?;
+            runner.set_device(&exec.device()?);
+            runner.run(&opts, exec, ctx, out)?;
         }
         PipelineCommand::Status(a) => {
             let p = Pipeline::load(&a.file, &a.set)?;
             let mut runner = Runner::open(&p, u64::MAX, true)?;
-            runner.set_device(&ctx.renderer()?.tag());
+            runner.set_device(&exec.device()?);
             runner.status(out)?;
         }
         PipelineCommand::Dag(a) => {

@@ -19,62 +19,16 @@ use super::spec::{Pipeline, Stage};
 use super::status::{self, Reason};
 use crate::context::Context;
 
-/// Runs one stage's command. The real one is [`InProcess`]; tests use a double that writes
-/// files, so the runner logic is tested without the stage implementations.
+/// Runs one stage's command. The real one is `cli::InProcess` (the pipeline does not know
+/// the stages); tests use a double that writes files, so the runner logic is tested without
+/// the stage implementations.
 pub trait Executor {
     /// Run `stage.argv`, resolving relative paths against `base` (the pipeline directory).
     fn execute(&mut self, stage: &Stage, base: &Path) -> anyhow::Result<()>;
-}
 
-/// Runs a stage as a usplat4d subcommand in this process: parses `argv` with the CLI parser
-/// and calls `cli::dispatch` with the working directory set to the pipeline directory for the
-/// duration of the stage (the runner is single-threaded at the stage level). Stage output is
-/// quiet unless the pipeline runs with `--verbose`.
-#[derive(Debug, Clone)]
-pub struct InProcess {
-    /// The pipeline's context.
-    pub ctx: Context,
-}
-
-impl Executor for InProcess {
-    fn execute(&mut self, stage: &Stage, base: &Path) -> anyhow::Result<()> {
-        use clap::Parser;
-        let cli = crate::cli::Cli::try_parse_from(
-            std::iter::once("usplat4d".to_string()).chain(stage.argv.clone()),
-        )
-        .map_err(|e| anyhow::anyhow!("{}", e.to_string().trim_end()))?;
-        if matches!(cli.command, crate::cli::Command::Pipeline(_)) {
-            anyhow::bail!("a stage cannot run `pipeline`");
-        }
-        if cli.threads.is_some() {
-            self.ctx
-                .warn(format!("stage `{}`: --threads is ignored inside a pipeline", stage.name));
-        }
-        let ctx = self.ctx.with_flags(
-            cli.quiet || self.ctx.quiet || self.ctx.verbose == 0,
-            cli.verbose.max(self.ctx.verbose.saturating_sub(1)),
-            cli.device,
-        );
-        let previous = std::env::current_dir()?;
-        let base = if base.as_os_str().is_empty() { Path::new(".") } else { base };
-        std::env::set_current_dir(base).map_err(|e| anyhow::anyhow!("{}: {e}", base.display()))?;
-        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            crate::cli::dispatch(cli.command, &ctx)
-        }));
-        std::env::set_current_dir(&previous)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", previous.display()))?;
-        match result {
-            Ok(r) => r,
-            Err(panic) => {
-                let msg = panic
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_else(|| "unknown panic".into());
-                anyhow::bail!("panicked: {msg}")
-            }
-        }
-    }
+    /// What the stages render on (`cpu`, `gpu:<adapter>`): part of every stage's cache key,
+    /// so that an output of one device is never restored as another's.
+    fn device(&mut self) -> anyhow::Result<String>;
 }
 
 /// Options of `pipeline run` (already parsed).

@@ -2,8 +2,9 @@
 //! image, which checks that forward and backward agree at scale (thousands of Gaussians,
 //! hard cutoff, many layers), not only on finite-difference toy scenes.
 
-use super::synthetic::{SplitMix64, camera};
+use super::synthetic::camera;
 use super::*;
+use crate::util::rng::Rng;
 
 /// Target `[H, W, 3]`: a 16-px checker mixed with horizontal and vertical colour ramps.
 fn target(w: usize, h: usize) -> Vec<f32> {
@@ -58,12 +59,12 @@ fn adam_on_2000_gaussians_fits_a_textured_image_above_30_db() {
     let cam = camera(w as u32, h as u32);
     let gt = target(w, h);
     let n = 2000;
-    let mut rng = SplitMix64::new(1);
+    let mut rng = Rng::from_state(1);
     // Parameters in unconstrained form: means [N,3], log-scales [N,3], quats [N,4],
     // opacity logits [N], colours [N,3]; Gaussians on the plane z = 1.
     let mut means: Vec<f32> = Vec::with_capacity(n * 3);
     for _ in 0..n {
-        let (u, v) = (rng.range(0.0, w as f32), rng.range(0.0, h as f32));
+        let (u, v) = (rng.range_f32(0.0, w as f32), rng.range_f32(0.0, h as f32));
         means.extend_from_slice(&[(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0]);
     }
     let px = 1.0 / cam.fx;
@@ -101,7 +102,7 @@ fn adam_on_2000_gaussians_fits_a_textured_image_above_30_db() {
             num_features: 0,
         };
         let (out, saved) =
-            CpuRenderer.render_with_saved(&cam, &inputs, &settings, RasterPass::Backward).unwrap();
+            CpuRenderer.render_with_saved(&cam, &inputs, &settings, Cutoff::Hard).unwrap();
         best = psnr(&out.color, &gt);
         steps = t;
         if best > 31.0 {

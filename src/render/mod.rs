@@ -2,38 +2,32 @@
 //! reference, rayon over tiles) and on the GPU ([`gpu`], wgpu + WGSL), which matches it within
 //! tolerances (images 1e-4 absolute, statistics 1e-4 relative, gradients 1e-3 relative; GPU
 //! sums use float atomics, so GPU results are not bitwise deterministic). Stages get one
-//! through `--device cpu|gpu|auto` ([`gpu::Device`], [`gpu::AnyRenderer`]).
+//! through `--device cpu|gpu|auto` (`stages::device`, [`gpu::AnyRenderer`]).
 //!
 //! Inputs are one frame's Gaussians ([`SplatInputs`], canonical order, `[N]` arrays) and a
 //! pinhole [`RenderCamera`]. Outputs are images `[H, W, C]` plus per-Gaussian statistics in
 //! [`RenderAux`], indexed by canonical position (0 when culled).
 //!
-//! The CPU rasterizer is split into gsplat's stages, each a public function with its own
-//! tests: [`project::project`] → [`isect::isect_tiles`] → [`isect::tile_ranges`] →
-//! [`forward::rasterize_fwd`] → [`backward::rasterize_bwd`]; [`blend`] holds the
-//! per-(Gaussian, pixel) alpha math both passes share and [`constants`] its thresholds;
-//! [`cpu`] chains them. Gradients come from [`DifferentiableRenderer`].
+//! The CPU rasterizer ([`cpu`]) is split into gsplat's stages, each a public function with
+//! its own tests: [`cpu::project::project`] → [`cpu::isect::isect_tiles`] →
+//! [`cpu::isect::tile_ranges`] → [`cpu::forward::rasterize_fwd`] →
+//! [`cpu::backward::rasterize_bwd`]; [`cpu::blend`] holds the per-(Gaussian, pixel) alpha
+//! math both passes share and [`constants`] its thresholds; [`cpu`] chains them. Gradients
+//! come from [`DifferentiableRenderer`].
 //!
 //! Colour convention (3DGS): `colour = dc + Σ_k Y_k(dir)·rest_k`, clamped at 0, where `dc`
 //! is the degree-0 RGB; colour images are composited over the background.
 
-pub mod backward;
-pub mod bench;
-pub mod blend;
 pub mod constants;
 pub mod cpu;
 #[cfg(test)]
 mod fit_tests;
-pub mod forward;
 pub mod gpu;
-pub mod isect;
-pub mod project;
 pub mod sh;
 pub mod synthetic;
 #[cfg(test)]
 mod tests;
 
-pub use blend::Cutoff;
 pub use cpu::SavedForBackward;
 
 use glam::Mat4;
@@ -81,22 +75,6 @@ pub struct RenderCamera {
     pub near: f32,
     /// Far plane; Gaussians farther are culled.
     pub far: f32,
-}
-
-impl From<&crate::scene::Camera> for RenderCamera {
-    fn from(c: &crate::scene::Camera) -> Self {
-        RenderCamera {
-            fx: c.fx as f32,
-            fy: c.fy as f32,
-            cx: c.cx as f32,
-            cy: c.cy as f32,
-            w2c: c.w2c_mat().as_mat4(),
-            width: c.width,
-            height: c.height,
-            near: 0.01,
-            far: 1e10,
-        }
-    }
 }
 
 /// Which frame spherical harmonics are evaluated in.
@@ -222,23 +200,14 @@ pub struct RenderOutput {
     pub aux: RenderAux,
 }
 
-/// Per-Gaussian results of the convergence test (paper Eq. 4/5 and the release's variant).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Convergence {
-    /// `[N]`: every pixel the Gaussian covers passes the per-pixel test (paper's product).
-    pub all_pass: Vec<bool>,
-    /// `[N]`: the pixel at the Gaussian's projected centre passes (release); false if the
-    /// centre is off-screen or the Gaussian is culled.
-    pub center_pass: Vec<bool>,
-}
-
 /// Which per-Gaussian convergence indicator [`DifferentiableRenderer::convergence_saved`]
 /// computes (paper Eq. 5's product, or the release's centre pixel).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ConvergenceTest {
     /// No pixel the Gaussian was blended into fails (vacuously true for unseen Gaussians).
     AllCoveredPixels,
-    /// The pixel under the projected centre passes, as [`Convergence::center_pass`].
+    /// The pixel under the projected centre passes (false when the centre is off-screen or
+    /// the Gaussian is culled).
     CentrePixel,
 }
 
@@ -251,42 +220,22 @@ pub trait Renderer {
         inputs: &SplatInputs,
         settings: &RenderSettings,
     ) -> Result<RenderOutput, Error>;
-
-    /// Per-Gaussian convergence against a per-pixel pass map `[H, W]` (e.g.
-    /// |rendered − ground truth|₁ < η_c).
-    fn convergence(
-        &self,
-        camera: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-        pixel_pass: &[bool],
-    ) -> Result<Convergence, Error>;
 }
 
 /// The CPU reference rasterizer (rayon over tiles), implemented in [`cpu`].
 #[derive(Debug, Clone, Copy, Default)]
 pub struct CpuRenderer;
 
-/// Which pass a render is for (selects the alpha cutoff; see [`Cutoff`]).
+/// How alphas near the 1/255 threshold ([`constants::ALPHA_THRESHOLD`]) are treated: the
+/// one setting in which a render for training differs from one for finite-difference tests.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum RasterPass {
-    /// Inference: hard 1/255 cutoff.
+pub enum Cutoff {
+    /// 3DGS: skip `α < 1/255`, keep `α` unchanged above (a step at the threshold).
     #[default]
-    Forward,
-    /// Training: hard cutoff, the same images as `Forward`, followed by a backward pass.
-    Backward,
-    /// Finite-difference tests: smooth cutoff so that the images are differentiable.
-    BackwardSmoothCutoff,
-}
-
-impl RasterPass {
-    /// The alpha cutoff of this pass.
-    pub fn cutoff(self) -> Cutoff {
-        match self {
-            RasterPass::Forward | RasterPass::Backward => Cutoff::Hard,
-            RasterPass::BackwardSmoothCutoff => Cutoff::Smooth,
-        }
-    }
+    Hard,
+    /// `α · s((α − τ)/τ)` with `s` the smoothstep, τ = 1/255: zero below τ, `α` above 2τ,
+    /// continuously differentiable in between. Used by finite-difference tests only.
+    Smooth,
 }
 
 /// Cotangents of a render's images (dL/d output). An empty vector means all zeros.
@@ -333,7 +282,7 @@ pub trait DifferentiableRenderer: Renderer {
         camera: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
-        pass: RasterPass,
+        cutoff: Cutoff,
     ) -> Result<(RenderOutput, Self::Saved), Error>;
 
     /// Gradients of the loss w.r.t. the inputs of the render that produced `saved`, given the

@@ -4,11 +4,12 @@
 
 use glam::Mat4;
 
-use super::blend::eval_alpha;
 use super::constants::T_THRESHOLD;
-use super::project::{CameraConsts, project};
-use super::synthetic::{SplitMix64, camera, cloud};
+use super::cpu::blend::eval_alpha;
+use super::cpu::project::{CameraConsts, project};
+use super::synthetic::{camera, cloud};
 use super::*;
+use crate::util::rng::Rng;
 
 /// Owned inputs of a test scene.
 #[derive(Debug, Clone)]
@@ -67,7 +68,7 @@ fn settings() -> RenderSettings {
 /// A small hand-tuned scene kept away from discontinuities: distinct depths, opacities
 /// ≤ 0.7 (no alpha clamp, no termination), positive colours, all inside the view.
 fn fd_scene(frame: Option<ShFrame>) -> Scene {
-    let mut rng = SplitMix64::new(7);
+    let mut rng = Rng::from_state(7);
     let n = 5;
     let mut s = Scene {
         means: Vec::new(),
@@ -83,18 +84,22 @@ fn fd_scene(frame: Option<ShFrame>) -> Scene {
     };
     for i in 0..n {
         let z = 2.0 + 0.5 * i as f32;
-        s.means.push([rng.range(-0.4, 0.4) * z / 2.0, rng.range(-0.3, 0.3) * z / 2.0, z]);
+        s.means.push([rng.range_f32(-0.4, 0.4) * z / 2.0, rng.range_f32(-0.3, 0.3) * z / 2.0, z]);
         s.quats.push([
-            rng.range(0.5, 1.0),
-            rng.range(-0.5, 0.5),
-            rng.range(-0.5, 0.5),
-            rng.range(-0.5, 0.5),
+            rng.range_f32(0.5, 1.0),
+            rng.range_f32(-0.5, 0.5),
+            rng.range_f32(-0.5, 0.5),
+            rng.range_f32(-0.5, 0.5),
         ]);
-        s.scales.push([rng.range(0.08, 0.2), rng.range(0.08, 0.2), rng.range(0.05, 0.2)]);
-        s.opacities.push(rng.range(0.3, 0.7));
-        s.dc.push([rng.range(1.2, 1.6), rng.range(1.2, 1.6), rng.range(1.2, 1.6)]);
-        s.rest.extend((0..45).map(|_| rng.range(-0.25, 0.25)));
-        s.features.extend([rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)]);
+        s.scales.push([
+            rng.range_f32(0.08, 0.2),
+            rng.range_f32(0.08, 0.2),
+            rng.range_f32(0.05, 0.2),
+        ]);
+        s.opacities.push(rng.range_f32(0.3, 0.7));
+        s.dc.push([rng.range_f32(1.2, 1.6), rng.range_f32(1.2, 1.6), rng.range_f32(1.2, 1.6)]);
+        s.rest.extend((0..45).map(|_| rng.range_f32(-0.25, 0.25)));
+        s.features.extend([rng.range_f32(-1.0, 1.0), rng.range_f32(-1.0, 1.0)]);
     }
     s
 }
@@ -107,9 +112,8 @@ fn fd_camera() -> RenderCamera {
 
 /// L = Σ v·image over colour, alpha, depth and features, accumulated in f64.
 fn loss(cam: &RenderCamera, s: &Scene, v: &ImageGrads) -> f64 {
-    let (out, _) = CpuRenderer
-        .render_with_saved(cam, &s.inputs(), &settings(), RasterPass::BackwardSmoothCutoff)
-        .unwrap();
+    let (out, _) =
+        CpuRenderer.render_with_saved(cam, &s.inputs(), &settings(), Cutoff::Smooth).unwrap();
     let dot =
         |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| *x as f64 * *y as f64).sum::<f64>();
     dot(&out.color, &v.color)
@@ -118,12 +122,26 @@ fn loss(cam: &RenderCamera, s: &Scene, v: &ImageGrads) -> f64 {
         + dot(&out.features, &v.features)
 }
 
+/// Both convergence indicators of one render against `pixel_pass`: `(all covered pixels
+/// pass and the Gaussian is seen, the centre pixel passes)`.
+fn convergence(
+    cam: &RenderCamera,
+    inputs: &SplatInputs,
+    pixel_pass: &[bool],
+) -> Result<(Vec<bool>, Vec<bool>), Error> {
+    let (out, saved) = CpuRenderer.render_with_saved(cam, inputs, &settings(), Cutoff::Hard)?;
+    let test = |t| CpuRenderer.convergence_saved(cam, &settings(), &saved, pixel_pass, t);
+    let all = test(ConvergenceTest::AllCoveredPixels)?;
+    let seen = all.iter().zip(&out.aux.n_pixels).map(|(a, n)| *a && *n > 0).collect();
+    Ok((seen, test(ConvergenceTest::CentrePixel)?))
+}
+
 #[test]
 fn gradients_match_finite_differences_for_every_parameter_group() {
     let cam = fd_camera();
     let (w, h) = (48usize, 40usize);
-    let mut rng = SplitMix64::new(11);
-    let mut cot = |len: usize| (0..len).map(|_| rng.range(-1.0, 1.0)).collect::<Vec<f32>>();
+    let mut rng = Rng::from_state(11);
+    let mut cot = |len: usize| (0..len).map(|_| rng.range_f32(-1.0, 1.0)).collect::<Vec<f32>>();
     let v = ImageGrads {
         color: cot(w * h * 3),
         alpha: cot(w * h),
@@ -134,9 +152,8 @@ fn gradients_match_finite_differences_for_every_parameter_group() {
     let mut checked = 0;
     for frame in [None, Some(ShFrame::World), Some(ShFrame::Local)] {
         let s = fd_scene(frame);
-        let (_, saved) = CpuRenderer
-            .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::BackwardSmoothCutoff)
-            .unwrap();
+        let (_, saved) =
+            CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Smooth).unwrap();
         let g = CpuRenderer.backward(&cam, &s.inputs(), &settings(), &saved, &v).unwrap();
         // Case table: (param, gaussian, component, analytic, step); steps in the parameter's
         // own units, small for scale/rotation because σ at the rim moves ∝ 1/scale².
@@ -272,9 +289,8 @@ fn fuzzed_inputs_are_culled_never_panic_and_leave_outputs_finite() {
     s.dc[11] = [nan, inf, -inf];
     // Huge but finite: covers every tile with a nearly flat footprint.
     s.scales[12] = [1e5; 3];
-    let (out, saved) = CpuRenderer
-        .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward)
-        .unwrap();
+    let (out, saved) =
+        CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
     for (i, what) in &poison {
         assert!(!out.aux.visible[*i], "{what} must be culled");
         assert_eq!((out.aux.sum_w2[*i], out.aux.n_pixels[*i]), (0.0, 0), "{what}");
@@ -317,19 +333,19 @@ fn output_and_gradients_are_bit_identical_across_thread_counts() {
     let mut s = Scene::from_cloud(cloud(&cam, 1500, 15.0, 9));
     s.frame = Some(ShFrame::World);
     s.degree = 2;
-    let mut rng = SplitMix64::new(2);
-    s.rest = (0..1500 * 24).map(|_| rng.range(-0.1, 0.1)).collect();
+    let mut rng = Rng::from_state(2);
+    s.rest = (0..1500 * 24).map(|_| rng.range_f32(-0.1, 0.1)).collect();
     let v = ImageGrads {
-        color: (0..90 * 70 * 3).map(|_| rng.range(-1.0, 1.0)).collect(),
-        alpha: (0..90 * 70).map(|_| rng.range(-1.0, 1.0)).collect(),
-        depth: (0..90 * 70).map(|_| rng.range(-1.0, 1.0)).collect(),
+        color: (0..90 * 70 * 3).map(|_| rng.range_f32(-1.0, 1.0)).collect(),
+        alpha: (0..90 * 70).map(|_| rng.range_f32(-1.0, 1.0)).collect(),
+        depth: (0..90 * 70).map(|_| rng.range_f32(-1.0, 1.0)).collect(),
         features: Vec::new(),
     };
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         pool.install(|| {
             let (out, saved) = CpuRenderer
-                .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward)
+                .render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard)
                 .unwrap();
             let g = CpuRenderer.backward(&cam, &s.inputs(), &settings(), &saved, &v).unwrap();
             let mut bits = [
@@ -422,28 +438,28 @@ fn convergence_checks_all_covered_pixels_and_the_centre_pixel() {
     // Fail one pixel inside Gaussian 0's footprint, 3 px from its centre.
     let (cx, cy) = (splats[0].mean2d[0] as usize, splats[0].mean2d[1] as usize);
     pass[cy * 64 + cx + 3] = false;
-    let conv = CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass).unwrap();
-    assert_eq!(conv.all_pass, vec![false, true, false, true]);
-    assert_eq!(conv.center_pass, vec![true, true, false, false]);
+    let conv = convergence(&cam, &s.inputs(), &pass).unwrap();
+    assert_eq!(conv.0, vec![false, true, false, true]);
+    assert_eq!(conv.1, vec![true, true, false, false]);
     pass[cy * 64 + cx] = false;
-    let conv = CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass).unwrap();
-    assert_eq!(conv.center_pass, vec![false, true, false, false]);
-    assert!(CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass[1..]).is_err());
+    let conv = convergence(&cam, &s.inputs(), &pass).unwrap();
+    assert_eq!(conv.1, vec![false, true, false, false]);
+    assert!(convergence(&cam, &s.inputs(), &pass[1..]).is_err());
 }
 
 /// The all-covered-pixels indicator computed from a finished render ([`failing_pairs`]
 /// visits failing pixels only) against a per-pixel walk of the sorted Gaussians.
 ///
-/// [`failing_pairs`]: super::forward::failing_pairs
+/// [`failing_pairs`]: super::cpu::forward::failing_pairs
 #[test]
 fn convergence_from_the_saved_render_matches_a_per_pixel_walk() {
     let (w, h) = (48usize, 36usize);
     let cam = camera(w as u32, h as u32);
     let s = Scene::from_cloud(cloud(&cam, 120, 10.0, 11));
-    let mut rng = SplitMix64::new(4);
-    let pass: Vec<bool> = (0..w * h).map(|_| rng.uniform() > 0.005).collect();
+    let mut rng = Rng::from_state(4);
+    let pass: Vec<bool> = (0..w * h).map(|_| rng.uniform_f32() > 0.005).collect();
     let (out, saved) =
-        CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Forward).unwrap();
+        CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
     let all = CpuRenderer
         .convergence_saved(&cam, &settings(), &saved, &pass, ConvergenceTest::AllCoveredPixels)
         .unwrap();
@@ -468,7 +484,7 @@ fn convergence_from_the_saved_render_matches_a_per_pixel_walk() {
         |ok: bool| want.iter().zip(&out.aux.n_pixels).filter(|(o, n)| **o == ok && **n > 0).count();
     let (failing, passing) = (count(false), count(true));
     assert!(failing > 5 && passing > 5, "{failing} failing, {passing} passing: weak test");
-    let conv = CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass).unwrap();
+    let conv = convergence(&cam, &s.inputs(), &pass).unwrap();
     let seen: Vec<bool> = want.iter().zip(&out.aux.n_pixels).map(|(ok, n)| *ok && *n > 0).collect();
-    assert_eq!(conv.all_pass, seen);
+    assert_eq!(conv.0, seen);
 }

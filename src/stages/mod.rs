@@ -1,13 +1,14 @@
 //! The USplat4D stages, each a pure function of its input tables and parameters.
 
-pub mod bench_graph;
-pub mod bench_uncertainty;
+pub mod benchmark;
+pub mod device;
 pub mod edges;
 pub mod evaluate;
-pub mod evaluate_tracks;
 pub mod graph;
 pub mod keynodes;
+pub mod params;
 pub mod render;
+pub mod report;
 pub mod segment;
 pub mod uncertainty;
 

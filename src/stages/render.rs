@@ -17,12 +17,12 @@ use std::path::{Path, PathBuf};
 use anyhow::Context as _;
 
 use crate::context::Context;
-use crate::image_io::{Image, write_atomic, write_npy_f32, write_png};
+use crate::formats::npy::write_npy_f32;
+use crate::formats::png::{Image, write_png};
 use crate::model::{FrameState, Model};
-use crate::render::{
-    ColorSource, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatInputs,
-};
+use crate::render::{RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame};
 use crate::scene::{Camera, Scene, Split};
+use crate::util::fs::write_atomic;
 
 /// Which cameras to render.
 #[derive(
@@ -36,18 +36,6 @@ pub enum SplitSel {
     Eval,
     /// Every camera.
     All,
-}
-
-/// Frame in which spherical harmonics are evaluated.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
-)]
-#[serde(rename_all = "kebab-case")]
-pub enum ShFrameArg {
-    /// World view direction (3DGS, Shape of Motion).
-    World,
-    /// View direction in the Gaussian's local frame (MoSca).
-    Local,
 }
 
 /// Parameters of `usplat4d render`.
@@ -75,10 +63,6 @@ pub struct RenderParams {
     #[arg(long, default_value_t = 0.99, help_heading = "Rendering")]
     #[serde(default = "default_alpha_max")]
     pub alpha_max: f32,
-    /// Frame of the SH view direction.
-    #[arg(long, value_enum, default_value_t = ShFrameArg::World, help_heading = "Rendering")]
-    #[serde(default = "default_sh_frame")]
-    pub sh_frame: ShFrameArg,
     /// Also write the expected z-depth as float32 .npy.
     #[arg(long, help_heading = "Outputs")]
     #[serde(default)]
@@ -94,10 +78,6 @@ fn default_background() -> String {
 fn default_alpha_max() -> f32 {
     0.99
 }
-fn default_sh_frame() -> ShFrameArg {
-    ShFrameArg::World
-}
-
 /// Parse `white`, `black` or `R,G,B`.
 pub fn parse_background(s: &str) -> anyhow::Result<[f32; 3]> {
     match s {
@@ -146,24 +126,8 @@ fn render_frame(
     state: &FrameState,
     cam: &Camera,
     settings: &RenderSettings,
-    sh_frame: ShFrame,
 ) -> anyhow::Result<RenderOutput> {
-    let g = &model.gaussians;
-    let colors = if g.sh_degree == 0 {
-        ColorSource::Rgb(&g.color)
-    } else {
-        ColorSource::Sh { degree: g.sh_degree, dc: &g.color, rest: &g.sh_rest, frame: sh_frame }
-    };
-    let inputs = SplatInputs {
-        means: &state.position,
-        quats: &state.rotation,
-        scales: &g.scale,
-        opacities: &g.opacity,
-        colors,
-        features: &[],
-        num_features: 0,
-    };
-    Ok(renderer.render(&RenderCamera::from(cam), &inputs, settings)?)
+    Ok(renderer.render(&RenderCamera::from(cam), &model.splat_inputs(state), settings)?)
 }
 
 /// Run `usplat4d render`.
@@ -171,10 +135,6 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
     let _span = tracing::info_span!("stage.render").entered();
     let background = parse_background(&p.background)?;
     let settings = RenderSettings { background, alpha_max: p.alpha_max };
-    let sh_frame = match p.sh_frame {
-        ShFrameArg::World => ShFrame::World,
-        ShFrameArg::Local => ShFrame::Local,
-    };
     let scene = Scene::load(&p.scene)?;
     let model = Model::load(&p.model)?;
     let cams: Vec<&Camera> = scene
@@ -203,11 +163,11 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
         ctx.warn("some cameras have lens distortion; the renderer ignores it (pinhole)");
     }
     let bar = ctx.progress(cams.len() as u64, "render");
-    let renderer = ctx.renderer()?;
+    let renderer = super::device::renderer(ctx)?;
     for (&frame, cs) in &by_frame {
         let state = model.frame(frame as usize)?;
         for cam in cs {
-            let out = render_frame(&renderer, &model, &state, cam, &settings, sh_frame)
+            let out = render_frame(&renderer, &model, &state, cam, &settings)
                 .with_context(|| format!("rendering camera '{}' frame {frame}", cam.camera))?;
             write_png(&p.out.join(&cam.image_path), &straight_rgba(&out, background))?;
             if p.depth {
@@ -218,12 +178,17 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
         }
     }
     bar.finish_and_clear();
-    write_manifest(&p.out, p, cams.len())?;
+    write_manifest(&p.out, p, model.sh_frame, cams.len())?;
     ctx.info(format!("rendered {} images into {}", cams.len(), p.out.display()));
     Ok(())
 }
 
-fn write_manifest(out: &Path, p: &RenderParams, count: usize) -> anyhow::Result<()> {
+fn write_manifest(
+    out: &Path,
+    p: &RenderParams,
+    sh_frame: ShFrame,
+    count: usize,
+) -> anyhow::Result<()> {
     let manifest = serde_json::json!({
         "model": p.model,
         "scene": p.scene,
@@ -231,7 +196,10 @@ fn write_manifest(out: &Path, p: &RenderParams, count: usize) -> anyhow::Result<
         "count": count,
         "background": p.background,
         "alpha_max": p.alpha_max.to_string().parse::<f64>().unwrap_or(f64::NAN),
-        "sh_frame": p.sh_frame,
+        "sh_frame": match sh_frame {
+            ShFrame::World => "world",
+            ShFrame::Local => "local",
+        },
         "depth": p.depth,
         "version": crate::VERSION,
     });
@@ -243,7 +211,7 @@ fn write_manifest(out: &Path, p: &RenderParams, count: usize) -> anyhow::Result<
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::synthetic::write_demo_scene;
+    use crate::datasets::demo::write_demo_scene;
 
     #[test]
     fn renders_every_camera_of_a_split_with_straight_alpha() {
@@ -257,18 +225,17 @@ mod tests {
             split: SplitSel::Eval,
             background: "white".into(),
             alpha_max: 0.99,
-            sh_frame: ShFrameArg::World,
             depth: true,
         };
         run(&p, &Context::quiet()).unwrap();
         for t in 0..3 {
             let img =
-                crate::image_io::read_png(&out.join(format!("rgb/cam01/{t:05}.png"))).unwrap();
+                crate::formats::png::read_png(&out.join(format!("rgb/cam01/{t:05}.png"))).unwrap();
             assert_eq!((img.width, img.height, img.channels), (80, 60, 4));
             assert!(img.at(40, 30, 3) > 0.95, "the plane covers the centre");
             assert_eq!(img.at(0, 0, 3), 0.0, "the corner is empty");
             let (shape, d) =
-                crate::image_io::read_npy_f32(&out.join(format!("depth/cam01/{t:05}.npy")))
+                crate::formats::npy::read_npy_f32(&out.join(format!("depth/cam01/{t:05}.npy")))
                     .unwrap();
             assert_eq!(shape, vec![60, 80]);
             assert!((d[30 * 80 + 40] - 4.0).abs() < 0.2, "depth at the centre {}", d[30 * 80 + 40]);
@@ -314,7 +281,6 @@ mod tests {
             split: SplitSel::All,
             background: "white".into(),
             alpha_max: 0.99,
-            sh_frame: ShFrameArg::World,
             depth: false,
         };
         let err = run(&p, &Context::quiet()).unwrap_err().to_string();

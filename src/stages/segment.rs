@@ -13,7 +13,7 @@ use std::path::PathBuf;
 
 use super::graph::spectral::{self, SparseSym};
 use crate::context::Context;
-use crate::image_io::Image;
+use crate::formats::png::Image;
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::segments::Segments;
 
@@ -27,12 +27,13 @@ pub struct SegmentParams {
     /// Output directory (segments.parquet, weights.png).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
-    /// Number of segments (default: by the largest eigengap up to --max-k).
-    #[arg(long)]
+    /// Number of segments, at most the number of key nodes (default: by the largest eigengap
+    /// up to --max-k).
+    #[arg(long, value_parser = crate::stages::params::check::count)]
     #[serde(default)]
     pub k: Option<usize>,
     /// Largest K the eigengap may pick.
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 10, value_parser = crate::stages::params::check::count)]
     #[serde(default = "default_max_k")]
     pub max_k: usize,
     /// Seed of the eigensolver start and of k-means++.
@@ -60,16 +61,22 @@ pub struct Segmentation {
     pub order: Vec<usize>,
 }
 
-/// Cluster the key graph of `edges` into `k` segments (or by eigengap up to `max_k`).
-pub fn segment(edges: &Edges, k: Option<usize>, max_k: usize, seed: u64) -> Segmentation {
-    let mut key_ids: Vec<u32> = (0..edges.len())
+/// The key nodes of `edges` (every destination, and both ends of key-key edges), ascending.
+pub fn key_ids(edges: &Edges) -> Vec<u32> {
+    let mut ids: Vec<u32> = (0..edges.len())
         .flat_map(|e| match edges.kind[e] {
             EdgeKind::KeyKey => vec![edges.src[e], edges.dst[e]],
             EdgeKind::NonkeyKey => vec![edges.dst[e]],
         })
         .collect();
-    key_ids.sort_unstable();
-    key_ids.dedup();
+    ids.sort_unstable();
+    ids.dedup();
+    ids
+}
+
+/// Cluster the key graph of `edges` into `k` segments (or by eigengap up to `max_k`).
+pub fn segment(edges: &Edges, k: Option<usize>, max_k: usize, seed: u64) -> Segmentation {
+    let key_ids = key_ids(edges);
     let index: BTreeMap<u32, u32> =
         key_ids.iter().enumerate().map(|(i, id)| (*id, i as u32)).collect();
     let nk = key_ids.len();
@@ -159,8 +166,14 @@ pub fn run(p: &SegmentParams, ctx: &Context) -> anyhow::Result<()> {
     if p.k == Some(0) || p.max_k == 0 {
         anyhow::bail!("segment: --k and --max-k must be at least 1");
     }
-    let edges =
-        crate::tables::edges::read(&p.edges.join(crate::tables::edges::EdgesTable::file_name()))?;
+    let path = p.edges.join(crate::tables::edges::EdgesTable::file_name());
+    let edges = crate::tables::edges::read(&path)?;
+    let keys = key_ids(&edges).len();
+    if let Some(k) = p.k
+        && k > keys
+    {
+        anyhow::bail!("segment: --k {k} is more than the {keys} key nodes of {}", path.display());
+    }
     let s = segment(&edges, p.k, p.max_k, p.seed);
     ctx.info(format!(
         "segment: {} segments over {} Gaussians ({} keys); leading eigenvalues {:?}",
@@ -178,6 +191,39 @@ pub fn run(p: &SegmentParams, ctx: &Context) -> anyhow::Result<()> {
         &s.segments,
         &prov,
     )?;
-    crate::image_io::write_png(&p.out.join("weights.png"), &weight_image(&s, 1024))?;
+    crate::formats::png::write_png(&p.out.join("weights.png"), &weight_image(&s, 1024))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::tables::Table;
+
+    /// `--k` above the number of key nodes is an error naming the option (it used to be
+    /// clamped silently to the number of eigenvectors computed).
+    #[test]
+    fn k_above_the_number_of_keys_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut e = Edges::default();
+        for (s, d) in [(0, 1), (1, 2), (2, 0), (5, 0), (6, 1)] {
+            let kind = if s < 3 { EdgeKind::KeyKey } else { EdgeKind::NonkeyKey };
+            e.src.push(s);
+            e.dst.push(d);
+            e.kind.push(kind);
+            e.weight.push(1.0);
+        }
+        let path = dir.path().join(crate::tables::edges::EdgesTable::file_name());
+        crate::tables::edges::write(&path, &e, &crate::tables::Provenance::default()).unwrap();
+        let p = |k| SegmentParams {
+            edges: dir.path().into(),
+            out: dir.path().join("out"),
+            k: Some(k),
+            max_k: 10,
+            seed: 0,
+        };
+        let err = run(&p(100_000), &Context::quiet()).unwrap_err().to_string();
+        assert!(err.contains("--k 100000 is more than the 3 key nodes"), "{err}");
+        run(&p(3), &Context::quiet()).unwrap();
+    }
 }

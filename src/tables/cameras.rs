@@ -5,6 +5,8 @@
 //! order given; readers validate finiteness, positive sizes and unique (camera, frame).
 
 use std::path::Path;
+
+use glam::{DMat3, DMat4, DVec3};
 use std::sync::Arc;
 
 use arrow::array::{
@@ -14,7 +16,112 @@ use arrow::datatypes::{DataType, Float32Type, Float64Type, Schema, SchemaRef, UI
 
 use super::io::{Columns, Table, TableReader, batch, field, fixed_list, nullable, write_table};
 use super::{Error, Provenance, Result, validate};
-use crate::scene::{Camera, Split};
+
+/// Which part of the dataset an image belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Split {
+    /// The monocular training video.
+    Train,
+    /// Held-out evaluation views (DyCheck "val").
+    Eval,
+}
+
+impl Split {
+    /// The name stored in the `split` column.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Eval => "eval",
+        }
+    }
+
+    /// Parse a stored split name.
+    pub fn parse(s: &str) -> Option<Split> {
+        match s {
+            "train" => Some(Split::Train),
+            "eval" => Some(Split::Eval),
+            _ => None,
+        }
+    }
+}
+
+/// One image's camera: a pinhole with optional distortion, OpenCV axes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    /// Time index 0..T-1 of the training video this image was taken at.
+    pub frame: u32,
+    /// Camera name (e.g. `"0"` for the training camera).
+    pub camera: String,
+    /// Train or eval.
+    pub split: Split,
+    /// Focal length x, pixels.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels (pixel centres at +0.5).
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// World-to-camera 4x4, row-major, OpenCV axes (x right, y down, z forward).
+    pub w2c: [f64; 16],
+    /// RGB(A) PNG path relative to the scene directory.
+    pub image_path: String,
+    /// z-depth `.npy` path (float32, 0 = invalid), if any.
+    pub depth_path: Option<String>,
+    /// Mask PNG path (covisibility or foreground), if any.
+    pub mask_path: Option<String>,
+    /// Horizontal angular offset from the training camera, degrees (synthetic benchmark).
+    pub angle_offset_deg: Option<f32>,
+    /// Distortion `[k1, k2, k3, p1, p2]` when non-zero.
+    pub distortion: Option<[f64; 5]>,
+}
+
+impl Camera {
+    /// The world-to-camera matrix (glam is column-major; `w2c` is stored row-major).
+    pub fn w2c_mat(&self) -> DMat4 {
+        DMat4::from_cols_array(&self.w2c).transpose()
+    }
+
+    /// Rotation part of world-to-camera.
+    pub fn rotation(&self) -> DMat3 {
+        DMat3::from_mat4(self.w2c_mat())
+    }
+
+    /// Camera centre in world coordinates.
+    pub fn center(&self) -> DVec3 {
+        let m = self.w2c_mat();
+        m.inverse().w_axis.truncate()
+    }
+
+    /// Row-major `w2c` from a glam matrix.
+    pub fn w2c_from_mat(m: DMat4) -> [f64; 16] {
+        m.transpose().to_cols_array()
+    }
+
+    /// Pixel coordinates (pixel centres at +0.5) and z-depth of world point `p` (pinhole,
+    /// distortion applied when present). `None` when behind the camera.
+    pub fn project(&self, p: DVec3) -> Option<(f64, f64, f64)> {
+        let c = self.w2c_mat().transform_point3(p);
+        if c.z <= 1e-9 {
+            return None;
+        }
+        let (mut u, mut v) = (c.x / c.z, c.y / c.z);
+        if let Some([k1, k2, k3, p1, p2]) = self.distortion {
+            let r2 = u * u + v * v;
+            let rad = 1.0 + r2 * (k1 + r2 * (k2 + k3 * r2));
+            let du = 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u);
+            let dv = 2.0 * p2 * u * v + p1 * (r2 + 2.0 * v * v);
+            u = u * rad + du;
+            v = v * rad + dv;
+        }
+        Some((self.fx * u + self.cx, self.fy * v + self.cy, c.z))
+    }
+}
 
 /// Marker type of the `cameras` table.
 pub struct CamerasTable;

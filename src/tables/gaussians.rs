@@ -16,7 +16,42 @@ use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt8Type, UInt
 
 use super::io::{Columns, Table, TableReader, batch, field, list, write_table};
 use super::{Error, Provenance, Result, validate};
-use crate::model::Gaussians;
+
+/// Static per-Gaussian attributes, `[N]` each, indexed by canonical position (not id).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Gaussians {
+    /// Stable `gaussian_id` of each Gaussian.
+    pub id: Vec<u32>,
+    /// Whether the Gaussian moves (dynamic) or is part of the static background.
+    pub dynamic: Vec<bool>,
+    /// Linear scales along the Gaussian's local axes, world units.
+    pub scale: Vec<[f32; 3]>,
+    /// Opacity in [0, 1].
+    pub opacity: Vec<f32>,
+    /// RGB colour of the SH degree-0 term, nominally [0, 1].
+    pub color: Vec<[f32; 3]>,
+    /// SH degree (0..=3) shared by all Gaussians.
+    pub sh_degree: u8,
+    /// Higher-order SH coefficients `[N, K, 3]` flattened, K = (degree+1)^2 - 1.
+    pub sh_rest: Vec<f32>,
+}
+
+impl Gaussians {
+    /// Number of Gaussians N.
+    pub fn len(&self) -> usize {
+        self.id.len()
+    }
+
+    /// Whether there are no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.id.is_empty()
+    }
+
+    /// Number of `sh_rest` floats per Gaussian (3·K).
+    pub fn sh_rest_len(&self) -> usize {
+        3 * ((self.sh_degree as usize + 1).pow(2) - 1)
+    }
+}
 
 /// Marker type of the `gaussians` table.
 pub struct GaussiansTable;

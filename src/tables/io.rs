@@ -52,6 +52,8 @@ pub struct Provenance {
     pub stage: String,
     /// The stage's parameters as JSON.
     pub params: serde_json::Value,
+    /// Further key-value metadata written after the standard keys (e.g. a model property).
+    pub metadata: Vec<(String, String)>,
 }
 
 impl Provenance {
@@ -60,7 +62,14 @@ impl Provenance {
         Provenance {
             stage: stage.to_string(),
             params: serde_json::to_value(params).unwrap_or(serde_json::Value::Null),
+            metadata: Vec::new(),
         }
+    }
+
+    /// The same provenance with one more key-value metadata entry.
+    pub fn with_metadata(mut self, key: &str, value: &str) -> Self {
+        self.metadata.push((key.to_string(), value.to_string()));
+        self
     }
 }
 
@@ -98,13 +107,14 @@ impl TableWriter {
             .tempfile_in(&dir)
             .map_err(io)?;
         let file = tmp.reopen().map_err(io)?;
-        let kv = vec![
+        let mut kv = vec![
             KeyValue::new(KEY_TABLE.into(), name.to_string()),
             KeyValue::new(KEY_SCHEMA_VERSION.into(), version.to_string()),
             KeyValue::new(KEY_STAGE.into(), provenance.stage.clone()),
             KeyValue::new(KEY_TOOL_VERSION.into(), crate::VERSION.to_string()),
             KeyValue::new(KEY_PARAMS.into(), provenance.params.to_string()),
         ];
+        kv.extend(provenance.metadata.iter().map(|(k, v)| KeyValue::new(k.clone(), v.clone())));
         let props = WriterProperties::builder()
             .set_compression(Compression::ZSTD(ZstdLevel::try_new(3).unwrap_or_default()))
             .set_key_value_metadata(Some(kv))

@@ -7,11 +7,10 @@
 //! normalised quaternions, unique ids, frames without gaps). Every error names the file, and
 //! where it applies the column and the row or frame.
 
+pub mod benchmark;
 pub mod cameras;
-pub mod check;
 pub mod edges;
 pub mod gaussians;
-pub mod inspect;
 pub mod io;
 pub mod key_nodes;
 pub mod metrics;
@@ -23,7 +22,7 @@ pub mod uncertainty;
 pub mod validate;
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
 
 use std::path::PathBuf;
 
@@ -131,5 +130,6 @@ pub fn registry() -> Vec<TableKind> {
         entry::<key_nodes::KeyNodesTable>(),
         entry::<edges::EdgesTable>(),
         entry::<segments::SegmentsTable>(),
+        entry::<benchmark::BenchmarkTable>(),
     ]
 }

@@ -12,7 +12,17 @@ use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
 
 use super::io::{Columns, FrameWriter, Table, TableReader, batch, field};
 use super::{Provenance, Result, validate};
-use crate::model::FrameState;
+
+/// Pose of every Gaussian at one frame, `[N]` each, canonical order.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameState {
+    /// Frame index t.
+    pub frame: u32,
+    /// World positions.
+    pub position: Vec<[f32; 3]>,
+    /// Rotations as unit quaternions `w, x, y, z` (local-to-world).
+    pub rotation: Vec<[f32; 4]>,
+}
 
 /// Marker type of the `trajectories` table.
 pub struct TrajectoriesTable;

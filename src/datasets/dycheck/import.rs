@@ -34,7 +34,7 @@ use super::keypoints::{self, KEYPOINT_DIR};
 use super::sequence::{SceneInfo, Sequence};
 use super::{Error, Result, World};
 use crate::context::Context;
-use crate::image_io::{self, Image};
+use crate::formats::{self, png::Image};
 use crate::scene::{Camera, Scene, Split};
 use crate::tables::Provenance;
 
@@ -178,12 +178,12 @@ fn copy_images(
         .map(|(cam, e)| {
             let (w, h) = (cam.width as usize, cam.height as usize);
             let src = existing(rgb_dir.join(format!("{}.png", e.name)), &e.name, e.split)?;
-            let img = image_io::read_png(&src)?;
+            let img = formats::png::read_png(&src)?;
             check_size(&src, img.width, img.height, cam, p.factor)?;
-            image_io::write_png(&p.out.join(&cam.image_path), &to_rgba(img))?;
+            formats::png::write_png(&p.out.join(&cam.image_path), &to_rgba(img))?;
             if let Some(rel) = &cam.depth_path {
                 let src = existing(depth_dir.join(format!("{}.npy", e.name)), &e.name, e.split)?;
-                let (shape, mut data) = image_io::read_npy_f32(&src)?;
+                let (shape, mut data) = formats::npy::read_npy_f32(&src)?;
                 if shape != [h, w, 1] && shape != [h, w] {
                     return Err(Error::File {
                         path: src,
@@ -195,11 +195,11 @@ fn copy_images(
                 if scale != 1.0 {
                     data.iter_mut().for_each(|d| *d = (*d as f64 * scale) as f32);
                 }
-                image_io::write_npy_f32(&p.out.join(rel), &[h, w], &data)?;
+                formats::npy::write_npy_f32(&p.out.join(rel), &[h, w], &data)?;
             }
             if let Some(rel) = &cam.mask_path {
                 let src = existing(cov_dir.join(format!("{}.png", e.name)), &e.name, e.split)?;
-                let m = image_io::read_png(&src)?.channel(0);
+                let m = formats::png::read_png(&src)?.channel(0);
                 let data: Vec<f32> =
                     m.data.iter().map(|v| if *v > 0.0 { 1.0 } else { 0.0 }).collect();
                 let data = if (m.width, m.height) == (w, h) {
@@ -207,7 +207,7 @@ fn copy_images(
                 } else {
                     super::resize_nearest(&data, m.width, m.height, 1, w, h)
                 };
-                image_io::write_png(
+                formats::png::write_png(
                     &p.out.join(rel),
                     &Image { width: w, height: h, channels: 1, data },
                 )?;
@@ -290,7 +290,8 @@ fn copy_keypoints(seq: &Sequence, out: &Path) -> Result<Option<serde_json::Value
     for f in files.iter().chain(skeleton.is_file().then_some(&skeleton)) {
         let bytes = std::fs::read(f).map_err(|error| Error::Io { path: f.clone(), error })?;
         let name = f.file_name().unwrap_or_default();
-        image_io::write_atomic(&out.join(KEYPOINT_DIR).join(name), &bytes)?;
+        crate::util::fs::write_atomic(&out.join(KEYPOINT_DIR).join(name), &bytes)
+            .map_err(crate::formats::Error::from)?;
     }
     Ok(Some(json!({"dir": KEYPOINT_DIR, "frames": frames})))
 }

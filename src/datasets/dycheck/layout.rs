@@ -40,7 +40,7 @@ use super::keypoints;
 use super::sequence::SplitFile;
 use super::{Error, Result};
 use crate::context::Context;
-use crate::image_io::{self, Image};
+use crate::formats::{self, png::Image};
 use crate::scene::{Camera, Scene, Split};
 
 /// The scene's ground-truth 2D tracks (written by `synth`), the source of the keypoints.
@@ -204,7 +204,7 @@ fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
         &DycheckCamera::from_camera(cam, FACTOR)?.to_json(),
     )?;
     let src = scene.resolve(&cam.image_path);
-    let img = image_io::read_png(&src)?;
+    let img = formats::png::read_png(&src)?;
     if (img.width, img.height) != (w, h) {
         return Err(Error::File {
             path: src,
@@ -212,9 +212,9 @@ fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
         });
     }
     let png = format!("{}.png", j.name);
-    image_io::write_png(&out.join("rgb/2x").join(&png), &img)?;
+    formats::png::write_png(&out.join("rgb/2x").join(&png), &img)?;
     let up = super::resize_nearest(&img.data, w, h, img.channels, w * f, h * f);
-    image_io::write_png(
+    formats::png::write_png(
         &out.join("rgb/1x").join(&png),
         &Image { width: w * f, height: h * f, channels: img.channels, data: up },
     )?;
@@ -222,7 +222,7 @@ fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
         Split::Train => {
             let Some(rel) = &cam.depth_path else { return Ok(None) };
             let src = scene.resolve(rel);
-            let (shape, depth) = image_io::read_npy_f32(&src)?;
+            let (shape, depth) = formats::npy::read_npy_f32(&src)?;
             if shape != [h, w] && shape != [h, w, 1] {
                 return Err(Error::File {
                     path: src,
@@ -232,22 +232,22 @@ fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
                 });
             }
             let npy = format!("{}.npy", j.name);
-            image_io::write_npy_f32(&out.join("depth/2x").join(&npy), &[h, w, 1], &depth)?;
+            formats::npy::write_npy_f32(&out.join("depth/2x").join(&npy), &[h, w, 1], &depth)?;
             let up = super::resize_nearest(&depth, w, h, 1, w * f, h * f);
-            image_io::write_npy_f32(&out.join("depth/1x").join(&npy), &[h * f, w * f, 1], &up)?;
+            formats::npy::write_npy_f32(&out.join("depth/1x").join(&npy), &[h * f, w * f, 1], &up)?;
             Ok(Some(depth_extent(cam, &depth)))
         }
         Split::Eval => {
             let Some(rel) = &cam.mask_path else { return Ok(None) };
             let src = scene.resolve(rel);
-            let m = image_io::read_png(&src)?;
+            let m = formats::png::read_png(&src)?;
             if (m.width, m.height) != (w, h) {
                 return Err(Error::File {
                     path: src,
                     msg: format!("mask is {}x{} but its camera is {w}x{h}", m.width, m.height),
                 });
             }
-            image_io::write_png(&out.join("covisible/2x/val").join(&png), &m.channel(0))?;
+            formats::png::write_png(&out.join("covisible/2x/val").join(&png), &m.channel(0))?;
             Ok(None)
         }
     }

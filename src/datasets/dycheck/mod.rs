@@ -122,14 +122,14 @@ pub enum Error {
     /// An image or array file failed. (Not chained as a source: the message already holds
     /// the cause, and `{:#}` would print it again.)
     #[error("{0}")]
-    Image(crate::image_io::Error),
+    Image(crate::formats::Error),
     /// The cameras table failed (not chained, like [`Error::Image`]).
     #[error("{0}")]
     Table(crate::tables::Error),
 }
 
-impl From<crate::image_io::Error> for Error {
-    fn from(e: crate::image_io::Error) -> Self {
+impl From<crate::formats::Error> for Error {
+    fn from(e: crate::formats::Error) -> Self {
         Error::Image(e)
     }
 }
@@ -160,7 +160,7 @@ fn write_json(path: &std::path::Path, value: &serde_json::Value) -> Result<()> {
     let mut bytes = serde_json::to_vec_pretty(value)
         .map_err(|e| Error::File { path: path.into(), msg: e.to_string() })?;
     bytes.push(b'\n');
-    Ok(crate::image_io::write_atomic(path, &bytes)?)
+    Ok(crate::util::fs::write_atomic(path, &bytes).map_err(crate::formats::Error::from)?)
 }
 
 /// Nearest-neighbour resize of a row-major `[H, W, C]` array to `[h, w, C]`: output pixel

@@ -261,7 +261,7 @@ mod tests {
             .map(|r| root.join(r).join("real/dycheck-paper-windmill-cameras"))
             .find(|p| p.join("splits/train.json").exists());
         if found.is_none() {
-            eprintln!("skipping: shared/data/real/dycheck-paper-windmill-cameras not found");
+            eprintln!("SKIP: ../shared/data/real/dycheck-paper-windmill-cameras not found");
         }
         found
     }

@@ -5,8 +5,6 @@
 
 use glam::{Mat4, Quat, Vec3};
 
-use super::asset::Asset;
-
 /// Interpolation of an animation sampler.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Interp {
@@ -114,6 +112,21 @@ impl Channel {
     }
 }
 
+/// Rest transform and links of one glTF node.
+#[derive(Debug, Clone)]
+pub struct Node {
+    /// Rest translation.
+    pub translation: Vec3,
+    /// Rest rotation.
+    pub rotation: Quat,
+    /// Rest scale.
+    pub scale: Vec3,
+    /// Child node indices.
+    pub children: Vec<usize>,
+    /// Morph weights of the node's mesh at rest (node weights, else mesh weights), `[targets]`.
+    pub weights: Vec<f32>,
+}
+
 /// The pose of every node at one time.
 #[derive(Debug, Clone)]
 pub struct Pose {
@@ -123,11 +136,12 @@ pub struct Pose {
     pub weights: Vec<Vec<f32>>,
 }
 
-/// Pose `asset` at time `t` of `anim` (rest pose without an animation).
-pub fn pose(asset: &Asset, anim: Option<&Animation>, t: f32) -> Pose {
+/// Pose the node hierarchy (`nodes` and the `parent` of each) at time `t` of `anim` (rest
+/// pose without an animation).
+pub fn pose(nodes: &[Node], parent: &[Option<usize>], anim: Option<&Animation>, t: f32) -> Pose {
     let mut trs: Vec<(Vec3, Quat, Vec3)> =
-        asset.nodes.iter().map(|n| (n.translation, n.rotation, n.scale)).collect();
-    let mut weights: Vec<Vec<f32>> = asset.nodes.iter().map(|n| n.weights.clone()).collect();
+        nodes.iter().map(|n| (n.translation, n.rotation, n.scale)).collect();
+    let mut weights: Vec<Vec<f32>> = nodes.iter().map(|n| n.weights.clone()).collect();
     for ch in anim.map(|a| a.channels.as_slice()).unwrap_or(&[]) {
         let v = ch.sample(t);
         let n = ch.node;
@@ -142,7 +156,7 @@ pub fn pose(asset: &Asset, anim: Option<&Animation>, t: f32) -> Pose {
         trs.iter().map(|&(t, r, s)| Mat4::from_scale_rotation_translation(s, r, t)).collect();
     let mut world = vec![None; local.len()];
     for i in 0..local.len() {
-        resolve_world(i, &asset.parent, &local, &mut world);
+        resolve_world(i, parent, &local, &mut world);
     }
     Pose { world: world.into_iter().map(|m| m.unwrap_or(Mat4::IDENTITY)).collect(), weights }
 }

@@ -14,23 +14,8 @@ use glam::{Mat4, Quat, Vec2, Vec3, Vec4};
 use gltf::mesh::Mode;
 
 use super::Error;
-use super::anim::{Animation, Channel, Interp, Property};
+use super::anim::{Animation, Channel, Interp, Node, Property};
 use super::shade::{Material, Texture, Wrap, srgb_to_linear};
-
-/// Rest transform and links of one glTF node.
-#[derive(Debug, Clone)]
-pub struct Node {
-    /// Rest translation.
-    pub translation: Vec3,
-    /// Rest rotation.
-    pub rotation: Quat,
-    /// Rest scale.
-    pub scale: Vec3,
-    /// Child node indices.
-    pub children: Vec<usize>,
-    /// Morph weights of the node's mesh at rest (node weights, else mesh weights), `[targets]`.
-    pub weights: Vec<f32>,
-}
 
 /// A skin: joint nodes and their inverse bind matrices, `[J]` each.
 #[derive(Debug, Clone)]

@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::raster::{self, Sample, Samples, View};
 use super::surface::{self, SurfacePoint};
-use crate::image_io::Image;
+use crate::formats::png::Image;
 
 /// Most training frames kept for the covisibility test.
 pub const MAX_TESTED_FRAMES: usize = 24;

@@ -19,6 +19,7 @@ mod cameras;
 mod covis;
 mod raster;
 mod shade;
+mod shader;
 mod skin;
 mod surface;
 
@@ -32,12 +33,13 @@ pub use shade::TextureMode;
 
 use crate::context::Context;
 use crate::datasets::dycheck;
-use crate::image_io::{self, write_npy_f32, write_png};
+use crate::formats::{self, npy::write_npy_f32, png::write_png};
 use crate::model::{FrameState, Gaussians, Model};
 use crate::scene::{Camera, Scene, Split};
 use crate::tables::tracks_2d::{Tracks2dFrame, Tracks2dWriter};
 use crate::tables::tracks_3d::Tracks3dWriter;
 use crate::tables::{self, Provenance};
+use crate::util::rng::{Rng, mix};
 
 /// Output layouts of `synth`.
 #[derive(
@@ -228,7 +230,7 @@ pub enum Error {
     Table(#[from] tables::Error),
     /// Writing an image failed.
     #[error(transparent)]
-    Image(#[from] image_io::Error),
+    Image(#[from] formats::Error),
     /// Reading a DyCheck camera path or writing the DyCheck layout failed.
     #[error(transparent)]
     Dycheck(#[from] dycheck::Error),
@@ -336,7 +338,7 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
             p.gltf.display()
         ));
     }
-    let shader = shade::Shader::new(&asset, p.texture);
+    let shader = shader::Shader::new(&asset, p.texture);
     let (mut cams, on_path) = protocol_cameras(p)?;
     let num_train = cams
         .iter()
@@ -360,7 +362,7 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     let (lo, hi) = times
         .par_iter()
         .map(|&t| {
-            let v = skin::pose_vertices(&asset, &anim::pose(&asset, anim, t));
+            let v = skin::pose_vertices(&asset, &anim::pose(&asset.nodes, &asset.parent, anim, t));
             bar.inc(1);
             v.iter().fold((Vec3::MAX, Vec3::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)))
         })
@@ -381,20 +383,25 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
         * Mat4::from_scale(Vec3::splat(norm_scale))
         * Mat4::from_translation(-centre);
     let posed = |t: usize| -> Vec<Vec3> {
-        let v = skin::pose_vertices(&asset, &anim::pose(&asset, anim, times[t]));
+        let v =
+            skin::pose_vertices(&asset, &anim::pose(&asset.nodes, &asset.parent, anim, times[t]));
         v.into_iter().map(|p| to_world.transform_point3(p)).collect()
     };
     let tris = &asset.mesh.tris;
 
     // Surface samples on frame 0.
     let pos0 = posed(0);
-    let gauss_pts =
-        surface::sample_surface(&pos0, tris, p.gaussians as usize, &mut surface::Rng::new(p.seed));
+    let gauss_pts = surface::sample_surface(
+        &pos0,
+        tris,
+        p.gaussians as usize,
+        &mut Rng::from_state(p.seed).after(1),
+    );
     let track_pts = surface::sample_surface(
         &pos0,
         tris,
         p.tracks as usize,
-        &mut surface::Rng::new(surface::splitmix64(!p.seed)),
+        &mut Rng::from_state(mix(!p.seed)).after(1),
     );
     if gauss_pts.is_empty() {
         return Err(Error::Degenerate {
@@ -420,7 +427,7 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     // Pass 2: oracle model and tracks_3d.
     let prov = Provenance::new("synth", p);
     std::fs::create_dir_all(&p.out)
-        .map_err(|source| image_io::Error::Io { path: p.out.clone(), cause: source })?;
+        .map_err(|source| formats::Error::Io { path: p.out.clone(), cause: source })?;
     let mut t3 = Tracks3dWriter::create(&p.out.join("tracks_3d.parquet"), track_pts.len(), &prov)?;
     let bar = ctx.progress(num_train as u64, "oracle");
     let frames = (0..num_train).map(|t| -> tables::Result<FrameState> {
@@ -546,7 +553,8 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
         "trajectory": p.trajectory,
     });
     let text = serde_json::to_string_pretty(&info).unwrap_or_default();
-    image_io::write_atomic(&p.out.join("scene.json"), text.as_bytes())?;
+    crate::util::fs::write_atomic(&p.out.join("scene.json"), text.as_bytes())
+        .map_err(crate::formats::Error::from)?;
     if p.layout == Layout::Dycheck {
         dycheck::write_layout(&scene, &p.out.join("dycheck"), ctx)?;
     }

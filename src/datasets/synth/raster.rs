@@ -14,7 +14,7 @@
 use glam::{Mat4, Vec2, Vec3};
 use rayon::prelude::*;
 
-use crate::image_io::Image;
+use crate::formats::png::Image;
 use crate::scene::Camera;
 
 /// Sample rows per rayon task.

@@ -1,4 +1,4 @@
-//! Surface points of the posed mesh: a seeded splitmix64 generator, area-uniform sampling
+//! Surface points of the posed mesh: area-uniform sampling
 //! of (triangle, barycentric) points, and their position and local frame at any pose.
 //!
 //! A surface point is fixed on the mesh (triangle id + barycentrics), so following it
@@ -7,35 +7,7 @@
 
 use glam::{Mat3, Quat, Vec3};
 
-/// The splitmix64 mixing function (Steele et al. 2014).
-pub fn splitmix64(x: u64) -> u64 {
-    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
-/// A splitmix64 stream.
-#[derive(Debug, Clone)]
-pub struct Rng(u64);
-
-impl Rng {
-    /// The stream of `seed`.
-    pub fn new(seed: u64) -> Self {
-        Rng(seed)
-    }
-
-    /// Next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        splitmix64(self.0)
-    }
-
-    /// Uniform in [0, 1) with 53 bits.
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
+use crate::util::rng::Rng;
 
 /// A point fixed on the mesh surface.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -121,7 +93,7 @@ mod tests {
             Vec3::new(3.0, 1.0, 0.0),
         ];
         let tris = [[0, 1, 2], [3, 4, 5]];
-        let s = sample_surface(&pos, &tris, 4000, &mut Rng::new(7));
+        let s = sample_surface(&pos, &tris, 4000, &mut Rng::from_state(7).after(1));
         let second = s.iter().filter(|p| p.tri == 1).count();
         assert!((second as f64 / 4000.0 - 0.75).abs() < 0.03, "{second}");
         assert!(
@@ -129,7 +101,7 @@ mod tests {
                 .all(|p| p.b.iter().all(|&x| x >= 0.0)
                     && (p.b.iter().sum::<f32>() - 1.0).abs() < 1e-5)
         );
-        assert_eq!(s, sample_surface(&pos, &tris, 4000, &mut Rng::new(7)));
+        assert_eq!(s, sample_surface(&pos, &tris, 4000, &mut Rng::from_state(7).after(1)));
         let q = frame(&pos, &tris, &s[0]);
         assert!((q * Vec3::Z).abs_diff_eq(Vec3::Z, 1e-6));
         assert!((q * Vec3::X).abs_diff_eq(Vec3::X, 1e-6));

@@ -20,7 +20,7 @@
 use ndarray::{ArrayView2, ArrayViewMut2, ShapeBuilder, linalg::general_mat_mul};
 use rayon::prelude::*;
 
-use super::network::scratch;
+use super::scratch;
 
 /// Interpolation points of F(4×4, 3×3) and F(2×2, 5×5) (`n = 6`: five finite points);
 /// ±1/2 rather than ±2 halves the f32 error of F(4×4, 3×3) on AlexNet-like layers.
@@ -289,16 +289,8 @@ mod tests {
 
     /// Deterministic values in [−1, 1) (splitmix64).
     fn values(len: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed;
-        (0..len)
-            .map(|_| {
-                s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = s;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 23) as f32 - 1.0
-            })
-            .collect()
+        let mut rng = crate::util::rng::Rng::from_state(seed);
+        (0..len).map(|_| 2.0 * rng.uniform_f32() - 1.0).collect()
     }
 
     #[test]

@@ -1,29 +1,12 @@
-//! Renderer selection: the global `--device cpu|gpu|auto` flag and [`AnyRenderer`], the one
-//! renderer type stages hold (CPU or GPU behind the same traits).
-//!
-//! The default is `cpu` (bit-deterministic, and no graphics driver is loaded). `auto` takes a
-//! hardware GPU adapter when one exists and the CPU otherwise; software adapters (Mesa's
-//! lavapipe, WARP) are used only with an explicit `--device gpu`, so `auto` stays on the
-//! deterministic CPU path in CI.
+//! [`AnyRenderer`], the one renderer type stages hold: the CPU or the GPU renderer behind the
+//! same traits (`stages::device` picks one from `--device`).
 
 use super::super::cpu::SavedForBackward;
 use super::super::{
-    Convergence, ConvergenceTest, CpuRenderer, DifferentiableRenderer, Error, ImageGrads,
-    RasterPass, RenderCamera, RenderOutput, RenderSettings, Renderer, SplatGrads, SplatInputs,
+    ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, Error, ImageGrads, RenderCamera,
+    RenderOutput, RenderSettings, Renderer, SplatGrads, SplatInputs,
 };
 use super::{GpuRenderer, GpuSaved};
-
-/// Where to rasterize.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
-pub enum Device {
-    /// The CPU reference renderer (bit-deterministic; the default).
-    #[default]
-    Cpu,
-    /// A GPU through wgpu; software adapters (lavapipe) count. An error when there is none.
-    Gpu,
-    /// A hardware GPU adapter if there is one, else the CPU.
-    Auto,
-}
 
 /// The CPU or the GPU renderer.
 #[derive(Debug, Clone)]
@@ -39,8 +22,8 @@ pub enum AnyRenderer {
 pub enum AnySaved {
     /// CPU state.
     Cpu(SavedForBackward),
-    /// GPU state.
-    Gpu(GpuSaved),
+    /// GPU state (boxed: it holds the frame's buffer handles).
+    Gpu(Box<GpuSaved>),
 }
 
 impl AnySaved {
@@ -54,21 +37,6 @@ impl AnySaved {
 }
 
 impl AnyRenderer {
-    /// Open the renderer `device` asks for.
-    pub fn open(device: Device) -> Result<AnyRenderer, Error> {
-        Ok(match device {
-            Device::Cpu => AnyRenderer::Cpu(CpuRenderer),
-            Device::Gpu => AnyRenderer::Gpu(
-                GpuRenderer::new(true)?
-                    .ok_or_else(|| Error::Gpu("--device gpu: no GPU adapter found".into()))?,
-            ),
-            Device::Auto => match GpuRenderer::new(false)? {
-                Some(g) => AnyRenderer::Gpu(g),
-                None => AnyRenderer::Cpu(CpuRenderer),
-            },
-        })
-    }
-
     /// `cpu`, or `gpu:<adapter>`: what produced a result (part of pipeline cache keys).
     pub fn tag(&self) -> String {
         match self {
@@ -94,19 +62,6 @@ impl Renderer for AnyRenderer {
             AnyRenderer::Gpu(r) => r.render(camera, inputs, settings),
         }
     }
-
-    fn convergence(
-        &self,
-        camera: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-        pixel_pass: &[bool],
-    ) -> Result<Convergence, Error> {
-        match self {
-            AnyRenderer::Cpu(r) => r.convergence(camera, inputs, settings, pixel_pass),
-            AnyRenderer::Gpu(r) => r.convergence(camera, inputs, settings, pixel_pass),
-        }
-    }
 }
 
 impl DifferentiableRenderer for AnyRenderer {
@@ -117,16 +72,16 @@ impl DifferentiableRenderer for AnyRenderer {
         camera: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
-        pass: RasterPass,
+        cutoff: Cutoff,
     ) -> Result<(RenderOutput, AnySaved), Error> {
         Ok(match self {
             AnyRenderer::Cpu(r) => {
-                let (o, s) = r.render_with_saved(camera, inputs, settings, pass)?;
+                let (o, s) = r.render_with_saved(camera, inputs, settings, cutoff)?;
                 (o, AnySaved::Cpu(s))
             }
             AnyRenderer::Gpu(r) => {
-                let (o, s) = r.render_with_saved(camera, inputs, settings, pass)?;
-                (o, AnySaved::Gpu(s))
+                let (o, s) = r.render_with_saved(camera, inputs, settings, cutoff)?;
+                (o, AnySaved::Gpu(Box::new(s)))
             }
         })
     }

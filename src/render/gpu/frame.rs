@@ -10,6 +10,10 @@ use wgpu::util::DeviceExt;
 
 use super::context::GpuContext;
 
+/// Words of the kernels' uniform block (`Params` in shaders/common.wgsl, packed by
+/// `params::pack`).
+pub(crate) const PARAM_WORDS: usize = 56;
+
 /// The sizes a frame's buffers depend on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) struct FrameKey {
@@ -174,7 +178,7 @@ impl Frame {
             .collect();
         Frame {
             key,
-            params: uniform(ctx, "params", &[0; super::params::PARAM_WORDS]),
+            params: uniform(ctx, "params", &[0; PARAM_WORDS]),
             geom: storage(ctx, "geom", key.n * 11),
             colors: storage(ctx, "colors", key.n * key.color_stride),
             feats: storage(ctx, "features", key.n * key.nf),

@@ -10,7 +10,7 @@
 //! pixel's last contributor) → `project_bwd` (projection and SH VJPs). Convergence:
 //! `fail_pairs` and `centre` on the saved forward state.
 //!
-//! Per-pixel arithmetic mirrors [`super::blend`] operation for operation (same exp
+//! Per-pixel arithmetic mirrors [`super::cpu::blend`] operation for operation (same exp
 //! polynomial, same evaluation order), so skip decisions agree with the CPU; sums that the
 //! GPU accumulates with atomics (statistics, gradients) are in a different order, so GPU
 //! results are **not bitwise deterministic**: they match the CPU within the tolerances of
@@ -28,7 +28,7 @@ mod params;
 mod tests;
 
 pub use context::GpuContext;
-pub use device::{AnyRenderer, AnySaved, Device};
+pub use device::{AnyRenderer, AnySaved};
 
 use std::sync::Arc;
 
@@ -39,9 +39,8 @@ use params::ColorMode;
 
 use super::cpu::check_inputs;
 use super::{
-    ColorSource, Convergence, ConvergenceTest, DifferentiableRenderer, Error, ImageGrads,
-    RasterPass, RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame,
-    SplatGrads, SplatInputs, sh,
+    ColorSource, ConvergenceTest, Cutoff, DifferentiableRenderer, Error, ImageGrads, RenderAux,
+    RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads, SplatInputs, sh,
 };
 
 /// The GPU rasterizer. Cheap to clone (shares the device and the buffer pool).
@@ -127,7 +126,7 @@ impl GpuRenderer {
         cam: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
-        pass: RasterPass,
+        cutoff: Cutoff,
     ) -> Result<(RenderOutput, GpuSaved), Error> {
         check_inputs(cam, inputs, settings)?;
         let _span = tracing::debug_span!("render.gpu.forward", n = inputs.means.len()).entered();
@@ -139,7 +138,7 @@ impl GpuRenderer {
             if self.junk {
                 frame.fill_junk(&self.ctx);
             }
-            let (sorted, words) = self.run_forward(&mut frame, cam, inputs, settings, pass)?;
+            let (sorted, words) = self.run_forward(&mut frame, cam, inputs, settings, cutoff)?;
             let m = *words.last().expect("pair count") as usize;
             if m > frame.key.pair_cap {
                 cap = m + m / 4;
@@ -168,7 +167,7 @@ impl GpuRenderer {
         cam: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
-        pass: RasterPass,
+        cutoff: Cutoff,
     ) -> Result<(usize, Vec<u32>), Error> {
         let ctx = &*self.ctx;
         let k = &ctx.kernels;
@@ -179,7 +178,7 @@ impl GpuRenderer {
             ColorSource::Sh { degree, frame: ShFrame::World, .. } => (ColorMode::ShWorld, degree),
             ColorSource::Sh { degree, frame: ShFrame::Local, .. } => (ColorMode::ShLocal, degree),
         };
-        let smooth = pass.cutoff() == super::Cutoff::Smooth;
+        let smooth = cutoff == Cutoff::Smooth;
         let params = params::pack(cam, settings, &key, mode, degree, smooth);
         let q = &ctx.queue;
         q.write_buffer(&frame.params, 0, bytemuck::cast_slice(&params));
@@ -375,21 +374,7 @@ impl Renderer for GpuRenderer {
         inputs: &SplatInputs,
         settings: &RenderSettings,
     ) -> Result<RenderOutput, Error> {
-        Ok(self.forward(cam, inputs, settings, RasterPass::Forward)?.0)
-    }
-
-    fn convergence(
-        &self,
-        cam: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-        pixel_pass: &[bool],
-    ) -> Result<Convergence, Error> {
-        let (out, saved) = self.forward(cam, inputs, settings, RasterPass::Forward)?;
-        let pass = |test| self.convergence_saved(cam, settings, &saved, pixel_pass, test);
-        let all = pass(ConvergenceTest::AllCoveredPixels)?;
-        let all_pass = all.iter().zip(&out.aux.n_pixels).map(|(a, n)| *a && *n > 0).collect();
-        Ok(Convergence { all_pass, center_pass: pass(ConvergenceTest::CentrePixel)? })
+        Ok(self.forward(cam, inputs, settings, Cutoff::Hard)?.0)
     }
 }
 
@@ -401,9 +386,9 @@ impl DifferentiableRenderer for GpuRenderer {
         cam: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
-        pass: RasterPass,
+        cutoff: Cutoff,
     ) -> Result<(RenderOutput, GpuSaved), Error> {
-        self.forward(cam, inputs, settings, pass)
+        self.forward(cam, inputs, settings, cutoff)
     }
 
     fn backward(

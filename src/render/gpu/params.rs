@@ -1,12 +1,9 @@
 //! Packing of the kernels' uniform block (`Params` in shaders/common.wgsl): six vec4s, then
 //! 32 scalars in declaration order.
 
-use super::super::project::CameraConsts;
+use super::super::cpu::project::CameraConsts;
 use super::super::{RenderCamera, RenderSettings};
-use super::frame::FrameKey;
-
-/// Words of the uniform block.
-pub(crate) const PARAM_WORDS: usize = 56;
+use super::frame::{FrameKey, PARAM_WORDS};
 
 /// How colours are given: RGB, or SH evaluated in the world or local frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

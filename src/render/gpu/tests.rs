@@ -7,9 +7,10 @@
 
 use glam::Mat4;
 
-use super::super::synthetic::{SplitMix64, camera, cloud};
+use super::super::synthetic::{camera, cloud};
 use super::super::*;
 use super::GpuRenderer;
+use crate::util::rng::Rng;
 
 /// The GPU under test (software adapters allowed: lavapipe in CI), or `None` with a SKIP.
 fn gpu() -> Option<GpuRenderer> {
@@ -49,12 +50,12 @@ impl Scene {
         frame: Option<ShFrame>,
     ) -> Scene {
         let c = cloud(cam, n, complexity, seed);
-        let mut rng = SplitMix64::new(seed ^ 0x5eed);
+        let mut rng = Rng::from_state(seed ^ 0x5eed);
         let (degree, nf) = if frame.is_some() { (3, 2) } else { (0, 0) };
         let k3 = 3 * (sh::num_basis(degree) - 1);
         Scene {
-            rest: (0..n * k3).map(|_| rng.range(-0.3, 0.3)).collect(),
-            features: (0..n * nf).map(|_| rng.range(-1.0, 1.0)).collect(),
+            rest: (0..n * k3).map(|_| rng.range_f32(-0.3, 0.3)).collect(),
+            features: (0..n * nf).map(|_| rng.range_f32(-1.0, 1.0)).collect(),
             means: c.means,
             quats: c.quats,
             scales: c.scales,
@@ -173,8 +174,8 @@ fn check_grads(g: &SplatGrads, c: &SplatGrads, what: &str) -> f32 {
 }
 
 fn cotangents(w: usize, h: usize, nf: usize, seed: u64) -> ImageGrads {
-    let mut rng = SplitMix64::new(seed);
-    let mut v = |n: usize| (0..n).map(|_| rng.range(-1.0, 1.0)).collect::<Vec<f32>>();
+    let mut rng = Rng::from_state(seed);
+    let mut v = |n: usize| (0..n).map(|_| rng.range_f32(-1.0, 1.0)).collect::<Vec<f32>>();
     ImageGrads { color: v(w * h * 3), alpha: v(w * h), depth: v(w * h), features: v(w * h * nf) }
 }
 
@@ -233,11 +234,9 @@ fn fuzzed() -> (RenderCamera, Scene) {
 fn fuzzed_inputs_are_culled_as_on_the_cpu() {
     let Some(gpu) = gpu() else { return };
     let (cam, s) = fuzzed();
-    let (c, cs) = CpuRenderer
-        .render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward)
-        .unwrap();
-    let (g, gs) =
-        gpu.render_with_saved(&cam, &s.inputs(), &settings(), RasterPass::Backward).unwrap();
+    let (c, cs) =
+        CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
+    let (g, gs) = gpu.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
     check_forward(&g, &c, "fuzzed");
     assert!(!g.aux.visible[..10].iter().any(|v| *v), "poisoned Gaussians must be culled");
     let v = cotangents(32, 24, 0, 4);
@@ -254,16 +253,17 @@ fn fuzzed_inputs_are_culled_as_on_the_cpu() {
 fn gradients_match_the_cpu() {
     let Some(gpu) = gpu() else { return };
     let mut worst = 0.0f32;
-    for (seed, frame, pass) in [
-        (11, None, RasterPass::Backward),
-        (12, Some(ShFrame::World), RasterPass::Backward),
-        (13, Some(ShFrame::Local), RasterPass::BackwardSmoothCutoff),
+    for (seed, frame, cutoff) in [
+        (11, None, Cutoff::Hard),
+        (12, Some(ShFrame::World), Cutoff::Hard),
+        (13, Some(ShFrame::Local), Cutoff::Smooth),
     ] {
         let cam = tilted(48, 40);
         let s = Scene::new(&cam, 200, 4.0, seed, frame);
-        let what = format!("seed {seed} {frame:?} {pass:?}");
-        let (c, cs) = CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), pass).unwrap();
-        let (g, gs) = gpu.render_with_saved(&cam, &s.inputs(), &settings(), pass).unwrap();
+        let what = format!("seed {seed} {frame:?} {cutoff:?}");
+        let (c, cs) =
+            CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), cutoff).unwrap();
+        let (g, gs) = gpu.render_with_saved(&cam, &s.inputs(), &settings(), cutoff).unwrap();
         check_forward(&g, &c, &what);
         let v = cotangents(48, 40, s.nf, seed);
         let cg = CpuRenderer.backward(&cam, &s.inputs(), &settings(), &cs, &v).unwrap();
@@ -278,10 +278,16 @@ fn convergence_matches_the_cpu() {
     let Some(gpu) = gpu() else { return };
     let cam = tilted(64, 48);
     let s = Scene::new(&cam, 300, 6.0, 21, None);
-    let mut rng = SplitMix64::new(3);
-    let pass: Vec<bool> = (0..64 * 48).map(|_| rng.uniform() < 0.97).collect();
-    let c = CpuRenderer.convergence(&cam, &s.inputs(), &settings(), &pass).unwrap();
-    let g = gpu.convergence(&cam, &s.inputs(), &settings(), &pass).unwrap();
-    assert_eq!(g, c);
-    assert!(c.all_pass.iter().any(|p| *p) && c.all_pass.iter().any(|p| !*p));
+    let mut rng = Rng::from_state(3);
+    let pass: Vec<bool> = (0..64 * 48).map(|_| rng.uniform_f32() < 0.97).collect();
+    let (c, cs) =
+        CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
+    let (_, gs) = gpu.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
+    for test in [ConvergenceTest::AllCoveredPixels, ConvergenceTest::CentrePixel] {
+        let want = CpuRenderer.convergence_saved(&cam, &settings(), &cs, &pass, test).unwrap();
+        let got = gpu.convergence_saved(&cam, &settings(), &gs, &pass, test).unwrap();
+        assert_eq!(got, want, "{test:?}");
+        let seen: Vec<bool> = want.iter().zip(&c.aux.n_pixels).map(|(p, n)| *p && *n > 0).collect();
+        assert!(seen.iter().any(|p| *p) && seen.iter().any(|p| !*p), "{test:?} is trivial");
+    }
 }

@@ -52,7 +52,7 @@ use std::num::NonZero;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 
-use super::MetricForm;
+use super::metric::MetricForm;
 
 /// Per-key, per-frame data of the K key nodes, key-major `[K, T]`.
 #[derive(Debug, Clone, Default)]
@@ -707,7 +707,8 @@ pub fn knn_mean(kf: &KeyFrames, i: usize, k: usize) -> Vec<(f32, u32)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stages::graph::{Rng, apply};
+    use crate::stages::graph::metric::apply;
+    use crate::util::rng::Rng;
 
     /// Random keys in two clusters, anisotropically transformed per frame (for the metric
     /// `form`), with some unreliable (φ) and ineligible frames.

@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use super::Rng;
+use crate::util::rng::Rng;
 
 /// A sparse symmetric matrix in compressed rows `[n]`, each row `(column, value)` sorted.
 #[derive(Debug, Clone, Default)]

@@ -1,0 +1,148 @@
+//! `usplat4d bench render`: forward and forward+backward timings of the rasterizer of
+//! `--device` (the CPU by default) on seeded random clouds (see
+//! [`crate::render::synthetic::cloud`]), printed as a Markdown table.
+//! Meaningful only in a release build.
+//!
+//! Columns: N Gaussians; M tile-Gaussian intersections; blended (Gaussian, pixel) pairs
+//! (α ≥ 1/255, before termination, i.e. Σ n_pixels); median ms per frame of the forward
+//! pass and of forward + backward (wall clock); mean process CPU ms per frame of each (all
+//! threads); blended pairs per second of the forward pass (wall clock).
+
+use std::time::Instant;
+
+use crate::render::synthetic::{camera, cloud};
+use crate::render::{Cutoff, DifferentiableRenderer, ImageGrads, RenderSettings, Renderer};
+
+/// Parameters of `usplat4d bench render`.
+#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct BenchRenderParams {
+    /// Image width.
+    #[arg(long, default_value_t = 480)]
+    #[serde(default = "default_width")]
+    pub width: u32,
+    /// Image height.
+    #[arg(long, default_value_t = 360)]
+    #[serde(default = "default_height")]
+    pub height: u32,
+    /// Gaussian counts, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "10000,50000,200000")]
+    #[serde(default = "default_counts")]
+    pub counts: Vec<usize>,
+    /// How many times the 3σ discs cover the image.
+    #[arg(long, default_value_t = 20.0)]
+    #[serde(default = "default_depth_complexity")]
+    pub depth_complexity: f32,
+    /// Timed repetitions per measurement (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    #[serde(default = "default_repeats")]
+    pub repeats: usize,
+    /// Seed of the random clouds.
+    #[arg(long, default_value_t = 0)]
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_width() -> u32 {
+    480
+}
+fn default_height() -> u32 {
+    360
+}
+fn default_counts() -> Vec<usize> {
+    vec![10_000, 50_000, 200_000]
+}
+fn default_depth_complexity() -> f32 {
+    20.0
+}
+fn default_repeats() -> usize {
+    5
+}
+
+/// Process CPU time (user + system, all threads) in ms from `/proc/self/stat`, assuming
+/// Linux's USER_HZ = 100; `None` elsewhere. On a busy shared machine wall time overstates
+/// the cost; CPU time / threads is what an idle machine would show with perfect scaling.
+pub fn cpu_ms() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks * 10.0)
+}
+
+/// Median of `v` (ms).
+pub fn median_ms(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Run the benchmark and print the table to stdout.
+pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Result<()> {
+    if p.repeats == 0 || p.width == 0 || p.height == 0 {
+        anyhow::bail!("--repeats, --width and --height must be positive");
+    }
+    if cfg!(debug_assertions) {
+        ctx.warn("debug build: timings are not meaningful (use cargo build --release)");
+    }
+    let r = crate::stages::device::renderer(ctx)?;
+    let cam = camera(p.width, p.height);
+    let settings = RenderSettings::default();
+    let (w, h) = (p.width as usize, p.height as usize);
+    println!(
+        "{} rasterizer, {}x{}, depth complexity {}, {} threads, median of {}",
+        r.tag(),
+        p.width,
+        p.height,
+        p.depth_complexity,
+        rayon::current_num_threads(),
+        p.repeats
+    );
+    println!();
+    println!(
+        "| N | M (tile pairs) | blended pairs | forward ms | fwd+bwd ms | forward CPU ms \
+         | fwd+bwd CPU ms | blended pairs/s (fwd) |"
+    );
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let bar = ctx.progress(p.counts.len() as u64, "bench render");
+    for &n in &p.counts {
+        let c = cloud(&cam, n, p.depth_complexity, p.seed);
+        let inputs = c.inputs();
+        let warm = r.render(&cam, &inputs, &settings)?;
+        let blended: u64 = warm.aux.n_pixels.iter().map(|&v| v as u64).sum();
+        let v = ImageGrads {
+            color: vec![1e-3; w * h * 3],
+            alpha: vec![1e-3; w * h],
+            ..ImageGrads::default()
+        };
+        let (mut fwd, mut both, mut pairs) = (Vec::new(), Vec::new(), 0);
+        let c0 = cpu_ms();
+        for _ in 0..p.repeats {
+            let t0 = Instant::now();
+            std::hint::black_box(r.render(&cam, &inputs, &settings)?);
+            fwd.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        let c1 = cpu_ms();
+        for _ in 0..p.repeats {
+            let t0 = Instant::now();
+            let (_, saved) = r.render_with_saved(&cam, &inputs, &settings, Cutoff::Hard)?;
+            std::hint::black_box(r.backward(&cam, &inputs, &settings, &saved, &v)?);
+            both.push(t0.elapsed().as_secs_f64() * 1e3);
+            pairs = saved.num_pairs();
+        }
+        let c2 = cpu_ms();
+        let per = |a: Option<f64>, b: Option<f64>| match (a, b) {
+            (Some(a), Some(b)) => format!("{:.1}", (b - a) / p.repeats as f64),
+            _ => "-".into(),
+        };
+        let (f, b) = (median_ms(fwd), median_ms(both));
+        println!(
+            "| {n} | {pairs} | {blended} | {f:.1} | {b:.1} | {} | {} | {:.3e} |",
+            per(c0, c1),
+            per(c1, c2),
+            blended as f64 / (f / 1e3)
+        );
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(())
+}

@@ -1,0 +1,38 @@
+//! File-system helpers: every output file is written to a temporary path and renamed.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// A failed atomic write: the path that failed (the file, or its directory when the
+/// directory or the temporary file could not be created) and the cause.
+#[derive(Debug, thiserror::Error)]
+#[error("{}: {source}", path.display())]
+pub struct WriteError {
+    /// The file or directory.
+    pub path: PathBuf,
+    /// The underlying error.
+    pub source: std::io::Error,
+}
+
+/// Write `bytes` to `path` through a temporary file in the same directory and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), WriteError> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let at = |p: &Path, source| WriteError { path: p.to_path_buf(), source };
+    std::fs::create_dir_all(&dir).map_err(|e| at(&dir, e))?;
+    let mut tmp =
+        tempfile::Builder::new().prefix(".tmp-").tempfile_in(&dir).map_err(|e| at(&dir, e))?;
+    tmp.write_all(bytes).map_err(|e| at(path, e))?;
+    tmp.persist(path).map_err(|e| WriteError { path: path.into(), source: e.error })?;
+    Ok(())
+}
+
+/// The last component of `dir` (resolved) as a label, e.g. a method or scene name.
+pub fn dir_label(dir: &Path) -> String {
+    dir.canonicalize()
+        .ok()
+        .and_then(|d| d.file_name().map(|n| n.to_string_lossy().into_owned()))
+        .unwrap_or_else(|| dir.display().to_string())
+}
