@@ -25,6 +25,11 @@ pub struct Cli {
     /// Results do not depend on it.
     #[arg(long, global = true, value_name = "N", value_parser = parse_threads)]
     pub threads: Option<usize>,
+    /// Where to rasterize: `cpu` (default: the bit-deterministic reference), `gpu` (wgpu;
+    /// software adapters such as lavapipe count) or `auto` (a hardware GPU if there is one,
+    /// else the CPU). GPU results match the CPU within tolerances, not bitwise.
+    #[arg(long, global = true, value_enum, value_name = "DEVICE")]
+    pub device: Option<crate::context::Device>,
     /// The stage to run.
     #[command(subcommand)]
     pub command: Command,
@@ -224,6 +229,7 @@ impl Executor for InProcess {
         let ctx = Context {
             quiet: cli.quiet || self.ctx.quiet || self.ctx.verbose == 0,
             verbose: cli.verbose.max(self.ctx.verbose.saturating_sub(1)),
+            device: cli.device.unwrap_or(self.ctx.device),
         };
         let previous = std::env::current_dir()?;
         let base = if base.as_os_str().is_empty() { Path::new(".") } else { base };
@@ -243,6 +249,10 @@ impl Executor for InProcess {
                 anyhow::bail!("panicked: {msg}")
             }
         }
+    }
+
+    fn device(&mut self) -> anyhow::Result<String> {
+        Ok(crate::stages::device::renderer(&self.ctx)?.tag())
     }
 }
 

@@ -1,11 +1,29 @@
-//! Run-wide settings shared by every stage: verbosity and progress bars.
+//! Run-wide settings shared by every stage: verbosity, progress bars and the device.
 //!
 //! A [`Context`] is built once from the global CLI flags. Stages ask it for progress bars,
-//! which draw only on an interactive terminal and never with `--quiet`.
+//! which draw only on an interactive terminal and never with `--quiet`. [`Device`] is the
+//! `--device` choice; `stages::device` opens the renderer it names.
 
 use std::io::IsTerminal;
 
 use indicatif::{ProgressBar, ProgressStyle};
+
+/// Where to rasterize (`--device`).
+///
+/// The default is `cpu` (bit-deterministic, and no graphics driver is loaded). `auto` takes a
+/// hardware GPU adapter when one exists and the CPU otherwise; software adapters (Mesa's
+/// lavapipe, WARP) are used only with an explicit `gpu`, so `auto` stays on the
+/// deterministic CPU path in CI.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum Device {
+    /// The CPU reference renderer (bit-deterministic; the default).
+    #[default]
+    Cpu,
+    /// A GPU through wgpu; software adapters (lavapipe) count. An error when there is none.
+    Gpu,
+    /// A hardware GPU adapter if there is one, else the CPU.
+    Auto,
+}
 
 /// Global settings of one invocation.
 #[derive(Debug, Clone, Default)]
@@ -14,12 +32,14 @@ pub struct Context {
     pub quiet: bool,
     /// Extra diagnostic output (0 = normal).
     pub verbose: u8,
+    /// Where stages rasterize (`--device`).
+    pub device: Device,
 }
 
 impl Context {
-    /// A context that prints nothing (tests, nested pipeline runs).
+    /// A context that prints nothing and renders on the CPU (tests, nested pipeline runs).
     pub fn quiet() -> Self {
-        Context { quiet: true, verbose: 0 }
+        Context { quiet: true, verbose: 0, device: Device::Cpu }
     }
 
     /// A progress bar over `len` items labelled `what`; hidden when quiet or stderr is not

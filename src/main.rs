@@ -7,7 +7,8 @@ use usplat4d::context::Context;
 
 fn main() -> ExitCode {
     let cli = Cli::try_parse_args(std::env::args_os()).unwrap_or_else(|e| e.exit());
-    let ctx = Context { quiet: cli.quiet, verbose: cli.verbose };
+    let ctx =
+        Context { quiet: cli.quiet, verbose: cli.verbose, device: cli.device.unwrap_or_default() };
     let level = match cli.verbose {
         0 => tracing::Level::WARN,
         1 => tracing::Level::INFO,

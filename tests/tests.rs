@@ -6,6 +6,7 @@ mod util;
 mod bad_inputs;
 mod dycheck;
 mod evaluate;
+mod gpu;
 mod graph;
 mod graph_fox;
 mod import;

@@ -75,6 +75,7 @@ pub struct Hasher {
     stamps: BTreeMap<String, Stamp>,
     dirty: bool,
     tool: Option<String>,
+    device: String,
 }
 
 fn now_ns() -> u128 {
@@ -104,7 +105,13 @@ impl Hasher {
             .ok()
             .and_then(|b| serde_json::from_slice(&b).ok())
             .unwrap_or_default();
-        Hasher { cache_file: Some(cache_file), stamps, dirty: false, tool: None }
+        Hasher {
+            cache_file: Some(cache_file),
+            stamps,
+            dirty: false,
+            tool: None,
+            device: String::new(),
+        }
     }
 
     /// Write the stat cache back if it changed, forgetting files that no longer exist.
@@ -119,9 +126,16 @@ impl Hasher {
         Ok(())
     }
 
+    /// Append the renderer's tag (`cpu`, `gpu:<adapter>`) to [`Hasher::tool_id`].
+    pub fn set_device(&mut self, tag: &str) {
+        self.device = tag.to_string();
+        self.tool = None;
+    }
+
     /// Identity of the running tool: its version and the content hash of its executable
     /// (`0.1.0+1a2b3c4d5e6f7a8b`), so that a rebuilt binary re-runs stages even when the
-    /// version number did not change. The executable's hash goes through the stat cache.
+    /// version number did not change, then the renderer's tag when set (`+cpu`). The
+    /// executable's hash goes through the stat cache.
     pub fn tool_id(&mut self) -> Result<String, Error> {
         if let Some(t) = &self.tool {
             return Ok(t.clone());
@@ -129,7 +143,10 @@ impl Hasher {
         let exe = std::env::current_exe()
             .map_err(|e| Error::Io { path: "(the running executable)".into(), source: e })?;
         let hash = self.hash(&exe)?.map(|t| t.hash).unwrap_or_default();
-        let id = format!("{}+{}", crate::VERSION, &hash[..hash.len().min(16)]);
+        let mut id = format!("{}+{}", crate::VERSION, &hash[..hash.len().min(16)]);
+        if !self.device.is_empty() {
+            id = format!("{id}+{}", self.device);
+        }
         self.tool = Some(id.clone());
         Ok(id)
     }

@@ -99,11 +99,14 @@ pub fn run_command(
             let opts =
                 RunOptions { force: a.force.clone(), only: a.only.clone(), dry_run: a.dry_run };
             let mut runner = Runner::open(&p, (a.cache_max_gb * 1e9) as u64, a.only.is_empty())?;
+            runner.set_device(&exec.device()?);
             runner.run(&opts, exec, ctx, out)?;
         }
         PipelineCommand::Status(a) => {
             let p = Pipeline::load(&a.file, &a.set)?;
-            Runner::open(&p, u64::MAX, true)?.status(out)?;
+            let mut runner = Runner::open(&p, u64::MAX, true)?;
+            runner.set_device(&exec.device()?);
+            runner.status(out)?;
         }
         PipelineCommand::Dag(a) => {
             let p = Pipeline::load(&a.file, &[])?;

@@ -25,6 +25,10 @@ use crate::context::Context;
 pub trait Executor {
     /// Run `stage.argv`, resolving relative paths against `base` (the pipeline directory).
     fn execute(&mut self, stage: &Stage, base: &Path) -> anyhow::Result<()>;
+
+    /// What the stages render on (`cpu`, `gpu:<adapter>`): part of every stage's cache key,
+    /// so that an output of one device is never restored as another's.
+    fn device(&mut self) -> anyhow::Result<String>;
 }
 
 /// Options of `pipeline run` (already parsed).
@@ -102,6 +106,12 @@ impl<'a> Runner<'a> {
         let hasher = Hasher::with_cache(state.join("stat-cache.json"));
         let cache = RunCache::new(state.join("cache"), cache_max_bytes);
         Ok(Runner { p, dag, lock, hasher, cache })
+    }
+
+    /// Key every stage by the renderer that runs it (`cpu` or `gpu:<adapter>`), so that a
+    /// GPU output is never restored as a CPU one or the reverse.
+    pub fn set_device(&mut self, tag: &str) {
+        self.hasher.set_device(tag);
     }
 
     /// Decide every stage without running anything: `(stage index, outcome)` in order.

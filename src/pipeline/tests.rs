@@ -61,6 +61,10 @@ impl Executor for FileOps {
         }
         Ok(())
     }
+
+    fn device(&mut self) -> anyhow::Result<String> {
+        Ok("cpu".into())
+    }
 }
 
 /// A pipeline directory in a tempdir.

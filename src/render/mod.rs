@@ -1,5 +1,8 @@
 //! The Gaussian rasterizer: one [`Renderer`] interface, implemented on the CPU (the
-//! reference, rayon over tiles) and later on the GPU (wgpu), which must match it.
+//! reference, rayon over tiles) and on the GPU ([`gpu`], wgpu + WGSL), which matches it within
+//! tolerances (images 1e-4 absolute, statistics 1e-4 relative, gradients 1e-3 relative; GPU
+//! sums use float atomics, so GPU results are not bitwise deterministic). Stages get one
+//! through `--device cpu|gpu|auto` (`stages::device`, [`gpu::AnyRenderer`]).
 //!
 //! Inputs are one frame's Gaussians ([`SplatInputs`], canonical order, `[N]` arrays) and a
 //! pinhole [`RenderCamera`]. Outputs are images `[H, W, C]` plus per-Gaussian statistics in
@@ -19,6 +22,7 @@ pub mod constants;
 pub mod cpu;
 #[cfg(test)]
 mod fit_tests;
+pub mod gpu;
 pub mod sh;
 pub mod synthetic;
 #[cfg(test)]
@@ -45,6 +49,9 @@ pub enum Error {
     /// A setting or camera value is unusable.
     #[error("{0}")]
     Settings(String),
+    /// The GPU failed (device lost, out of memory, kernels rejected by the driver).
+    #[error("GPU: {0}")]
+    Gpu(String),
 }
 
 /// A pinhole camera for rendering (no distortion).

@@ -1,6 +1,7 @@
 //! The USplat4D stages, each a pure function of its input tables and parameters.
 
 pub mod benchmark;
+pub mod device;
 pub mod edges;
 pub mod evaluate;
 pub mod graph;

@@ -22,7 +22,7 @@ use crate::context::Context;
 use crate::formats::npy::write_npy_f32;
 use crate::formats::png::{Image, write_png};
 use crate::model::{FrameState, Model};
-use crate::render::{CpuRenderer, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame};
+use crate::render::{RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame};
 use crate::scene::{Camera, Scene, Split};
 use crate::util::fs::write_atomic;
 
@@ -123,7 +123,7 @@ fn depth_rel_path(c: &Camera) -> String {
 }
 
 fn render_frame(
-    renderer: &CpuRenderer,
+    renderer: &dyn Renderer,
     model: &Model,
     state: &FrameState,
     cam: &Camera,
@@ -165,7 +165,7 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
         ctx.warn("some cameras have lens distortion; the renderer ignores it (pinhole)");
     }
     let bar = ctx.progress(cams.len() as u64, "render");
-    let renderer = CpuRenderer;
+    let renderer = super::device::renderer(ctx)?;
     let staging = staging_dir(&p.out)?;
     let staged = staging.path();
     for (&frame, cs) in &by_frame {

@@ -47,7 +47,7 @@ pub struct SavedForBackward {
 }
 
 /// Checks array lengths against N (and F) at stage entry.
-fn check_inputs(
+pub(crate) fn check_inputs(
     cam: &RenderCamera,
     inputs: &SplatInputs,
     settings: &RenderSettings,

@@ -24,7 +24,6 @@ use crate::context::Context;
 use crate::datasets::dycheck::{KEYPOINT_DIR, SceneKeypoints, read_scene_keypoints};
 use crate::metrics::tracking::{self, GtKeypoints, GtTracks3d, NUM_KEYFRAMES, PCK_3D_FRACTIONS};
 use crate::model::Model;
-use crate::render::CpuRenderer;
 use crate::scene::Scene;
 use crate::tables::{tracks_2d::Tracks2dReader, tracks_3d::Tracks3dReader};
 use crate::util::fs::dir_label;
@@ -180,7 +179,7 @@ fn evaluate_pck_t(
         .map_or(f64::NAN, |&f| tracking::pck_t_threshold(train[f].width, train[f].height));
     let keypoints = k.pixels.first().map_or(0, Vec::len);
     let gt = GtKeypoints { frames: k.frames, pixels: k.pixels, visible: k.visible };
-    let score = tracking::pck_t_model(model, scene, &gt, &CpuRenderer)
+    let score = tracking::pck_t_model(model, scene, &gt, &crate::stages::device::renderer(ctx)?)
         .with_context(|| format!("PCK-T of {} on {}", model_dir.display(), scene.dir.display()))?;
     let Some(score) = score else {
         ctx.warn("no two keyframes share a visible keypoint: no PCK-T");
@@ -260,8 +259,11 @@ fn evaluate_tracks(
         );
     }
     let keys = tracking::keyframes(frames, NUM_KEYFRAMES.min(frames));
-    let score = tracking::track_3d(model, scene, &gt, &keys, &CpuRenderer, diag)
-        .with_context(|| format!("tracking {} on {}", model_dir.display(), scene.dir.display()))?;
+    let score =
+        tracking::track_3d(model, scene, &gt, &keys, &crate::stages::device::renderer(ctx)?, diag)
+            .with_context(|| {
+                format!("tracking {} on {}", model_dir.display(), scene.dir.display())
+            })?;
     let Some(score) = score else {
         ctx.warn("no ground-truth track is visible at any keyframe: no tracking metrics");
         return Ok(None);

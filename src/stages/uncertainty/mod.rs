@@ -29,8 +29,8 @@ use std::path::PathBuf;
 use super::params::check;
 use crate::context::Context;
 use crate::render::{
-    ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, RenderAux, RenderCamera,
-    RenderSettings, SplatInputs,
+    ConvergenceTest, Cutoff, DifferentiableRenderer, RenderAux, RenderCamera, RenderSettings,
+    SplatInputs,
 };
 use crate::tables::uncertainty::UncertaintyFrame;
 use crate::util::{filter, stats};
@@ -235,7 +235,8 @@ pub struct FrameTruth<'a> {
 /// The stage's work on one frame once its inputs are loaded: one render of the whole model
 /// from the training camera, Eq. 4's pass map with the release gates, the convergence
 /// indicator from that same render (no second render), then Eqs. 3 and 5.
-pub fn frame_work(
+pub fn frame_work<R: DifferentiableRenderer>(
+    renderer: &R,
     t: u32,
     camera: &RenderCamera,
     inputs: &SplatInputs,
@@ -244,7 +245,6 @@ pub fn frame_work(
     rows: &[usize],
     s: &UncertaintySettings,
 ) -> Result<UncertaintyFrame, crate::render::Error> {
-    let renderer = CpuRenderer;
     let (out, saved) = renderer.render_with_saved(camera, inputs, settings, Cutoff::Hard)?;
     let (w, h) = (out.width, out.height);
     let mut pass = pixel_pass(&out.color, truth.rgb, s.eta_c, s.channel_reduce);
@@ -328,6 +328,7 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     let settings = RenderSettings::default();
     let mut frames = Vec::with_capacity(cams.len());
     let mut warned_depth = false;
+    let renderer = super::device::renderer(ctx)?;
     let bar = ctx.progress(cams.len() as u64, "uncertainty");
     for (t, cam) in cams.iter().enumerate() {
         let state = model.frame(t)?;
@@ -341,7 +342,7 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
         }
         let truth = loaded.view();
         let camera = RenderCamera::from(*cam);
-        let frame = frame_work(t as u32, &camera, &inputs, &settings, &truth, &rows, &s)
+        let frame = frame_work(&renderer, t as u32, &camera, &inputs, &settings, &truth, &rows, &s)
             .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
         frames.push(frame);
         bar.inc(1);

@@ -1,5 +1,6 @@
-//! `usplat4d bench render`: forward and forward+backward timings of the CPU rasterizer on
-//! seeded random clouds (see [`super::synthetic::cloud`]), printed as a Markdown table.
+//! `usplat4d bench render`: forward and forward+backward timings of the rasterizer of
+//! `--device` (the CPU by default) on seeded random clouds (see
+//! [`crate::render::synthetic::cloud`]), printed as a Markdown table.
 //! Meaningful only in a release build.
 //!
 //! Columns: N Gaussians; M tile-Gaussian intersections; blended (Gaussian, pixel) pairs
@@ -10,9 +11,7 @@
 use std::time::Instant;
 
 use crate::render::synthetic::{camera, cloud};
-use crate::render::{
-    CpuRenderer, Cutoff, DifferentiableRenderer, ImageGrads, RenderSettings, Renderer,
-};
+use crate::render::{Cutoff, DifferentiableRenderer, ImageGrads, RenderSettings, Renderer};
 
 /// Parameters of `usplat4d bench render`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
@@ -85,11 +84,13 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
     if cfg!(debug_assertions) {
         ctx.warn("debug build: timings are not meaningful (use cargo build --release)");
     }
+    let r = crate::stages::device::renderer(ctx)?;
     let cam = camera(p.width, p.height);
     let settings = RenderSettings::default();
     let (w, h) = (p.width as usize, p.height as usize);
     println!(
-        "CPU rasterizer, {}x{}, depth complexity {}, {} threads, median of {}",
+        "{} rasterizer, {}x{}, depth complexity {}, {} threads, median of {}",
+        r.tag(),
         p.width,
         p.height,
         p.depth_complexity,
@@ -106,7 +107,7 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
     for &n in &p.counts {
         let c = cloud(&cam, n, p.depth_complexity, p.seed);
         let inputs = c.inputs();
-        let warm = CpuRenderer.render(&cam, &inputs, &settings)?;
+        let warm = r.render(&cam, &inputs, &settings)?;
         let blended: u64 = warm.aux.n_pixels.iter().map(|&v| v as u64).sum();
         let v = ImageGrads {
             color: vec![1e-3; w * h * 3],
@@ -117,17 +118,16 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
         let c0 = cpu_ms();
         for _ in 0..p.repeats {
             let t0 = Instant::now();
-            std::hint::black_box(CpuRenderer.render(&cam, &inputs, &settings)?);
+            std::hint::black_box(r.render(&cam, &inputs, &settings)?);
             fwd.push(t0.elapsed().as_secs_f64() * 1e3);
         }
         let c1 = cpu_ms();
         for _ in 0..p.repeats {
             let t0 = Instant::now();
-            let (_, saved) =
-                CpuRenderer.render_with_saved(&cam, &inputs, &settings, Cutoff::Hard)?;
-            std::hint::black_box(CpuRenderer.backward(&cam, &inputs, &settings, &saved, &v)?);
+            let (_, saved) = r.render_with_saved(&cam, &inputs, &settings, Cutoff::Hard)?;
+            std::hint::black_box(r.backward(&cam, &inputs, &settings, &saved, &v)?);
             both.push(t0.elapsed().as_secs_f64() * 1e3);
-            pairs = saved.isect.keys.len();
+            pairs = saved.num_pairs();
         }
         let c2 = cpu_ms();
         let per = |a: Option<f64>, b: Option<f64>| match (a, b) {

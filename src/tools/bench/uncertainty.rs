@@ -125,7 +125,16 @@ impl Row {
         let c1 = cpu_ms();
         for _ in 0..repeats {
             let t0 = Instant::now();
-            std::hint::black_box(frame_work(0, camera, inputs, settings, truth, rows, s)?);
+            std::hint::black_box(frame_work(
+                &CpuRenderer,
+                0,
+                camera,
+                inputs,
+                settings,
+                truth,
+                rows,
+                s,
+            )?);
             self.frame_ms.push(t0.elapsed().as_secs_f64() * 1e3);
         }
         let c2 = cpu_ms();

@@ -1,0 +1,84 @@
+// file: convergence.wgsl
+// Convergence tests on a finished forward pass (mirror of forward.rs::failing_pairs and
+// cpu.rs::centre_pass). `fail_pairs`: per tile, each failing pixel's thread marks every
+// Gaussian blended into it (list position < last contributor, α > 0). `centre`: one thread
+// per Gaussian tests the pixel under its projected centre. Output [N]: 1 = passes.
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> splats: array<f32>;          // [N, 12]
+@group(0) @binding(2) var<storage, read> tile_offsets: array<u32>;    // [TX·TY + 1]
+@group(0) @binding(3) var<storage, read> vals: array<u32>;            // [M]
+@group(0) @binding(4) var<storage, read> last: array<u32>;            // [H, W]
+@group(0) @binding(5) var<storage, read> pixel_pass: array<u32>;      // [H, W] 1 = passes
+@group(0) @binding(6) var<storage, read_write> fail: array<atomic<u32>>; // [N]
+
+var<workgroup> max_last: atomic<u32>;
+var<workgroup> sh_max: u32;
+
+@compute @workgroup_size(16, 16)
+fn fail_pairs(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_id) loc: vec3<u32>,
+    @builtin(local_invocation_index) lin: u32,
+) {
+    let tile = wid.x + wid.y * P.tiles_x;
+    let px = wid.x * TILE + loc.x;
+    let py = wid.y * TILE + loc.y;
+    let inside = px < P.img_w && py < P.img_h;
+    let p = py * P.img_w + px;
+    if (lin == 0u) {
+        sh_range = vec2<u32>(tile_offsets[tile], tile_offsets[tile + 1u]);
+        atomicStore(&max_last, 0u);
+    }
+    workgroupBarrier();
+    var my_last = 0u;
+    if (inside && pixel_pass[p] == 0u) {
+        my_last = last[p];
+        atomicMax(&max_last, my_last);
+    }
+    workgroupBarrier();
+    if (lin == 0u) {
+        sh_max = atomicLoad(&max_last);
+    }
+    let range = workgroupUniformLoad(&sh_range);
+    let n_used = workgroupUniformLoad(&sh_max);
+    let pix = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
+    for (var b0 = 0u; b0 < n_used; b0 += 256u) {
+        let n_b = min(256u, n_used - b0);
+        if (lin < n_b) {
+            load_splat(lin, vals[range.x + b0 + lin]);
+        }
+        workgroupBarrier();
+        for (var j = 0u; j < n_b; j++) {
+            if (b0 + j >= my_last) {
+                break;
+            }
+            let g = staged(j);
+            let e = alpha_parts(g, g.mean.x - pix.x, g.mean.y - pix.y, P.alpha_max, P.cutoff);
+            if (e.x > 0.0) {
+                atomicMax(&fail[staged_id(j)], 1u);
+            }
+        }
+        workgroupBarrier();
+    }
+}
+
+@compute @workgroup_size(256)
+fn centre(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= P.n) {
+        return;
+    }
+    let o = i * SPLAT_STRIDE;
+    let x = floor(splats[o]);
+    let y = floor(splats[o + 1u]);
+    var ok = splats[o + 11u] != 0.0 && x >= 0.0 && y >= 0.0 && x < P.width_f && y < P.height_f;
+    if (ok) {
+        ok = pixel_pass[u32(y) * P.img_w + u32(x)] != 0u;
+    }
+    atomicStore(&fail[i], select(1u, 0u, ok));
+}
