@@ -599,7 +599,7 @@ fn imported_mosca_runs_through_the_graph_stages() {
         .collect();
     let scene = usplat4d::scene::Scene { dir: dir.join("s"), cameras };
     scene.save(&usplat4d::tables::Provenance::default()).unwrap();
-    dir.ok(&["render", "--model", "m", "--scene", "s", "--out", "s", "--sh-frame", "local"]);
+    dir.ok(&["render", "--model", "m", "--scene", "s", "--out", "s"]);
     // The scene agrees with the model: re-importing against it fits the identity.
     dir.ok(&["import", "mosca", "--dir", d.to_str().unwrap(), "--out", "m", "--scene", "s"]);
     let sim = usplat4d::model::Model::load(&dir.join("m")).unwrap().scene_to_model.unwrap();

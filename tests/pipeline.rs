@@ -229,7 +229,7 @@ fn an_unknown_key_is_named() {
     assert_eq!(
         d.error("run"),
         format!(
-            "error: {}: unknown field `outputs`, expected one of cmd, deps, outs, foreach, do at line 4, column 5",
+            "error: {}: line 4 column 14: stage `a`: unknown key `outputs` (expected `cmd`, `deps`, `outs`, `foreach`, `do`)",
             file.display()
         )
     );

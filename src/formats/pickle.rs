@@ -733,7 +733,7 @@ mod tests {
         let e = load(&p).unwrap_err();
         assert_eq!(
             e.to_string(),
-            "malformed pickle at byte 82: too many values (shared references expand too far)"
+            "malformed pickle at byte 83: too many values (shared references expand too far)"
         );
     }
 }

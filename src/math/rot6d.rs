@@ -42,7 +42,9 @@ mod tests {
             + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
         assert!((det - 1.0).abs() < 1e-14);
         let back = to_rotmat(from_rotmat(r));
-        assert_eq!(back, r);
+        for (a, b) in back.iter().flatten().zip(r.iter().flatten()) {
+            assert!((a - b).abs() < 1e-15, "{back:?} vs {r:?}");
+        }
         assert_eq!(
             to_rotmat([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]),
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]

@@ -17,9 +17,8 @@ use super::graph_loss::{GraphObjective, GraphSettings};
 use super::motion::{self, EdgeSet, MotionForm, Track, TrackGrad};
 use super::poses::{PoseGrads, Poses};
 use super::state::TrainState;
-use super::train::trained_graph;
-use crate::tables::edges::Edges;
-use crate::tables::key_nodes::KeyNodes;
+use crate::tables::edges::{EdgeKind, Edges};
+use crate::tables::key_nodes::{KeyNodes, Role};
 
 /// What the graph objective is built from (fixed for a run).
 pub struct GraphSource {
@@ -142,4 +141,40 @@ pub fn build_graph(
         settings.clone(),
     )
     .map_err(|e| anyhow::anyhow!("graph objective: {e}"))
+}
+
+/// Roles and edges of the trained Gaussians: inputs' rows for surviving Gaussians, the
+/// origin's t̂ and non-key edges for new ones (role `nonkey`).
+pub fn trained_graph(st: &TrainState, keys: &KeyNodes, edges: &Edges) -> (KeyNodes, Edges) {
+    let row: HashMap<u32, usize> = keys.id.iter().enumerate().map(|(r, &i)| (i, r)).collect();
+    let alive: std::collections::HashSet<u32> = st.ids.iter().copied().collect();
+    let mut out = KeyNodes::default();
+    for (&id, &origin) in st.ids.iter().zip(&st.origin) {
+        let Some(&r) = row.get(&origin) else { continue };
+        let own = id == origin;
+        out.id.push(id);
+        out.role.push(if own { keys.role[r] } else { Role::Nonkey });
+        out.t_hat.push(keys.t_hat[r]);
+        out.significant_period.push(if own { keys.significant_period[r] } else { 0 });
+    }
+    let mut by_src: HashMap<u32, Vec<usize>> = HashMap::new();
+    for e in 0..edges.len() {
+        by_src.entry(edges.src[e]).or_default().push(e);
+    }
+    let mut e_out = Edges::default();
+    for kind in [EdgeKind::KeyKey, EdgeKind::NonkeyKey] {
+        for (&id, &origin) in st.ids.iter().zip(&st.origin) {
+            for &e in by_src.get(&origin).map(Vec::as_slice).unwrap_or(&[]) {
+                let new_nonkey = id != origin;
+                let k = if new_nonkey { EdgeKind::NonkeyKey } else { edges.kind[e] };
+                if k == kind
+                    && alive.contains(&edges.dst[e])
+                    && (!new_nonkey || edges.kind[e] == EdgeKind::NonkeyKey)
+                {
+                    e_out.push(id, edges.dst[e], k, edges.weight[e]);
+                }
+            }
+        }
+    }
+    (out, e_out)
 }
