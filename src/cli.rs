@@ -415,7 +415,7 @@ mod parse_tests {
                 sum_w2: vec![1.0; n],
                 sum_w: vec![1.0; n],
                 n_pixels: vec![4; n],
-                converged: (0..n).map(|i| (i + t as usize) % 3 != 0).collect(),
+                converged: (0..n).map(|i| !(i + t as usize).is_multiple_of(3)).collect(),
                 u: (0..n).map(|i| 0.5 + (i % 7) as f32).collect(),
             })
             .unwrap();

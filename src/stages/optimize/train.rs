@@ -23,7 +23,7 @@ use crate::context::Context;
 use crate::model::Model;
 use crate::render::RenderSettings;
 use crate::scene::Scene;
-use crate::tables::edges::{EdgeKind, Edges};
+use crate::tables::edges::Edges;
 use crate::tables::key_nodes::{KeyNodes, Role};
 use crate::tables::training_log::{LR_GROUPS, LogRow};
 use crate::tables::{self, Provenance, Table};
