@@ -34,6 +34,8 @@ pub enum Command {
     /// Import a dataset or a base reconstruction.
     #[command(subcommand)]
     Import(ImportCommand),
+    /// Lift the monocular priors of a scene into an initial 4D model.
+    Init(crate::stages::init::InitParams),
     /// Render a model into the cameras of a scene.
     Render(crate::stages::render::RenderParams),
     /// Per-Gaussian, per-frame uncertainty (paper Sec. 4.1, Eqs. 3-6).
@@ -87,6 +89,7 @@ impl Command {
         match self {
             Command::Synth(_) => "synth",
             Command::Import(ImportCommand::Dycheck(_)) => "import dycheck",
+            Command::Init(_) => "init",
             Command::Render(_) => "render",
             Command::Uncertainty(_) => "uncertainty",
             Command::Keynodes(_) => "keynodes",
@@ -111,6 +114,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
     match command {
         Command::Synth(p) => datasets::synth::run(&p, ctx),
         Command::Import(ImportCommand::Dycheck(p)) => datasets::dycheck::run_import(&p, ctx),
+        Command::Init(p) => stages::init::run(&p, ctx),
         Command::Render(p) => stages::render::run(&p, ctx),
         Command::Uncertainty(p) => stages::uncertainty::run(&p, ctx),
         Command::Keynodes(p) => stages::keynodes::run(&p, ctx),

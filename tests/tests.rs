@@ -8,6 +8,7 @@ mod dycheck;
 mod evaluate;
 mod graph;
 mod graph_fox;
+mod init;
 mod inspect;
 mod interop;
 mod pipeline;

@@ -6,6 +6,7 @@ pub mod edges;
 pub mod evaluate;
 pub mod evaluate_tracks;
 pub mod graph;
+pub mod init;
 pub mod keynodes;
 pub mod render;
 pub mod segment;
