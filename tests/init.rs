@@ -106,8 +106,8 @@ fn init_model_renders_the_training_view() {
     let rows = usplat4d::tables::metrics::read(&d.join("e/metrics.parquet")).unwrap();
     assert_eq!(rows.len(), 12, "one row per training frame");
     let mean = rows.iter().map(|r| r.psnr).sum::<f64>() / rows.len() as f64;
-    // Measured 0.0 dB at this size (64², 12 frames, 2000 Gaussians, realistic priors); a
-    // model that misses the object scores about 11 dB against the white background.
+    // Measured 14.80 dB at this size (64², 12 frames 30° apart, 2000 Gaussians, realistic
+    // priors); the floor is well below it but fails for a model that misplaces the object.
     eprintln!("init training-view PSNR {mean:.2} dB");
-    assert!(mean > 0.0, "training-view PSNR {mean:.2} dB");
+    assert!(mean > 12.0, "training-view PSNR {mean:.2} dB");
 }
