@@ -80,6 +80,8 @@ pub enum Command {
     /// Import a dataset or a base reconstruction.
     #[command(subcommand)]
     Import(ImportCommand),
+    /// Lift the monocular priors of a scene into an initial 4D model.
+    Init(crate::stages::init::InitParams),
     /// Render a model into the cameras of a scene.
     Render(crate::stages::render::RenderParams),
     /// Per-Gaussian, per-frame uncertainty (paper Sec. 4.1, Eqs. 3-6).
@@ -148,6 +150,7 @@ impl Command {
             Command::Import(ImportCommand::Dycheck(_)) => "import dycheck",
             Command::Import(ImportCommand::Som(_)) => "import som",
             Command::Import(ImportCommand::Mosca(_)) => "import mosca",
+            Command::Init(_) => "init",
             Command::Render(_) => "render",
             Command::Uncertainty(_) => "uncertainty",
             Command::Keynodes(_) => "keynodes",
@@ -177,6 +180,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Import(ImportCommand::Dycheck(p)) => datasets::dycheck::run_import(&p, ctx),
         Command::Import(ImportCommand::Som(p)) => crate::import::som::run(&p, ctx),
         Command::Import(ImportCommand::Mosca(p)) => crate::import::mosca::run(&p, ctx),
+        Command::Init(p) => stages::init::run(&p, ctx),
         Command::Render(p) => stages::render::run(&p, ctx),
         Command::Uncertainty(p) => stages::uncertainty::run(&p, ctx),
         Command::Keynodes(p) => stages::keynodes::run(&p, ctx),

@@ -3,7 +3,9 @@
 //!
 //! Layout of `SCENE_DIR`: `cameras.parquet` (all train and eval images), the image, depth
 //! and mask files it names (paths relative to `SCENE_DIR`), and optionally
-//! `tracks_3d.parquet` / `tracks_2d.parquet` (ground-truth or prior tracks).
+//! `tracks_3d.parquet` / `tracks_2d.parquet` (ground-truth or prior tracks), and optionally
+//! `priors.json`, the manifest that says which files a monocular pipeline sees (the priors)
+//! and which are ground truth kept for evaluation ([`MonocularInputs`]).
 //! [`Scene::ground_truth`] reads one image's references for the stages that compare with it.
 
 use std::path::{Path, PathBuf};
@@ -111,6 +113,41 @@ impl Scene {
         self.dir.join(rel)
     }
 
+    /// Path of the priors manifest inside a scene directory.
+    pub fn priors_path(dir: &Path) -> PathBuf {
+        dir.join("priors.json")
+    }
+
+    /// What a monocular pipeline sees of this scene: the files `priors.json` names, or,
+    /// without a manifest (DyCheck imports, older scenes), the scene's own depth maps and
+    /// `tracks_2d.parquet`.
+    pub fn monocular_inputs(&self) -> tables::Result<MonocularInputs> {
+        let path = Self::priors_path(&self.dir);
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Ok(MonocularInputs {
+                    depth_prefix: String::new(),
+                    tracks_2d: "tracks_2d.parquet".into(),
+                });
+            }
+            Err(cause) => return Err(tables::Error::Io { path, cause }),
+        };
+        let json: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
+            tables::Error::Mismatch { path: path.clone(), msg: format!("not valid JSON: {e}") }
+        })?;
+        let key = |k: &str| -> tables::Result<String> {
+            json.pointer(&format!("/monocular_inputs/{k}"))
+                .and_then(|v| v.as_str())
+                .map(String::from)
+                .ok_or_else(|| tables::Error::Mismatch {
+                    path: path.clone(),
+                    msg: format!("key 'monocular_inputs.{k}' is missing or not a string"),
+                })
+        };
+        Ok(MonocularInputs { depth_prefix: key("depth_prefix")?, tracks_2d: key("tracks_2d")? })
+    }
+
     /// Read the image of `cam` composited over `background`, and its mask and depth map when
     /// asked for (and the camera has them); they must match the image's size. Errors name
     /// the file.
@@ -151,5 +188,23 @@ impl Scene {
             _ => None,
         };
         Ok(GroundTruth { rgb, mask, depth })
+    }
+}
+
+/// The priors of a scene: the files a monocular pipeline (`init`) may read besides the
+/// training cameras, their RGB images and their foreground masks.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MonocularInputs {
+    /// Prefix of the depth prior of a training camera: its depth is
+    /// `SCENE_DIR/<depth_prefix><camera depth_path>` (empty: the scene's own depth).
+    pub depth_prefix: String,
+    /// The 2D tracks prior, relative to the scene directory.
+    pub tracks_2d: String,
+}
+
+impl MonocularInputs {
+    /// The depth prior of training camera `cam`, if it has a depth path.
+    pub fn depth_path(&self, scene: &Scene, cam: &Camera) -> Option<PathBuf> {
+        cam.depth_path.as_ref().map(|d| scene.resolve(&format!("{}{d}", self.depth_prefix)))
     }
 }

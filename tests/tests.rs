@@ -10,6 +10,7 @@ mod gpu;
 mod graph;
 mod graph_fox;
 mod import;
+mod init;
 mod inspect;
 mod interop;
 mod layout;

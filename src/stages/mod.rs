@@ -5,6 +5,7 @@ pub mod device;
 pub mod edges;
 pub mod evaluate;
 pub mod graph;
+pub mod init;
 pub mod keynodes;
 pub mod optimize;
 pub mod params;

@@ -17,11 +17,12 @@ mod anim;
 mod asset;
 mod cameras;
 mod covis;
+pub mod priors;
 mod raster;
 mod shade;
 mod shader;
 mod skin;
-mod surface;
+pub(crate) mod surface;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -29,6 +30,7 @@ use std::path::{Path, PathBuf};
 use glam::{Mat4, Vec3};
 use rayon::prelude::*;
 
+pub use priors::PriorKind;
 pub use shade::TextureMode;
 
 use crate::context::Context;
@@ -128,6 +130,63 @@ pub struct SynthParams {
     #[arg(long, value_enum, default_value_t = Layout::Scene, help_heading = "Output")]
     #[serde(default = "defaults::layout")]
     pub layout: Layout,
+    /// Monocular priors written beside the exact data (`priors/`, named in `priors.json`).
+    #[arg(long, value_enum, default_value_t = PriorKind::Realistic, help_heading = "Priors")]
+    #[serde(default = "defaults::priors")]
+    pub priors: PriorKind,
+    /// σ of the log of the per-frame depth scale error.
+    #[arg(long, default_value_t = 0.02, help_heading = "Priors")]
+    #[serde(default = "defaults::depth_scale_error")]
+    pub depth_scale_error: f64,
+    /// σ of the per-frame depth shift error, in units of the frame's median depth.
+    #[arg(long, default_value_t = 0.01, help_heading = "Priors")]
+    #[serde(default = "defaults::depth_shift_error")]
+    pub depth_shift_error: f64,
+    /// σ of the relative depth noise (mostly smooth, partly per pixel).
+    #[arg(long, default_value_t = 0.03, help_heading = "Priors")]
+    #[serde(default = "defaults::depth_noise")]
+    pub depth_noise: f64,
+    /// σ of the depth edge-bleeding blur, pixels.
+    #[arg(long, default_value_t = 1.0, help_heading = "Priors")]
+    #[serde(default = "defaults::depth_edge_px")]
+    pub depth_edge_px: f64,
+    /// σ of the track position noise per axis, pixels.
+    #[arg(long, default_value_t = 1.0, help_heading = "Priors")]
+    #[serde(default = "defaults::track_noise_px")]
+    pub track_noise_px: f64,
+    /// Fraction of tracks that keep their drift after an occlusion.
+    #[arg(long, default_value_t = 0.15, help_heading = "Priors")]
+    #[serde(default = "defaults::track_drift_fraction")]
+    pub track_drift_fraction: f64,
+    /// σ per axis and occluded frame of the track drift random walk, pixels.
+    #[arg(long, default_value_t = 1.0, help_heading = "Priors")]
+    #[serde(default = "defaults::track_drift_px")]
+    pub track_drift_px: f64,
+    /// Largest shift of a visibility change, frames.
+    #[arg(long, default_value_t = 2, help_heading = "Priors")]
+    #[serde(default = "defaults::visibility_lag")]
+    pub visibility_lag: u32,
+    /// Probability that a visibility label flips.
+    #[arg(long, default_value_t = 0.03, help_heading = "Priors")]
+    #[serde(default = "defaults::visibility_flip")]
+    pub visibility_flip: f64,
+}
+
+impl SynthParams {
+    /// The error levels of the realistic priors.
+    pub fn levels(&self) -> priors::Levels {
+        priors::Levels {
+            depth_scale_error: self.depth_scale_error,
+            depth_shift_error: self.depth_shift_error,
+            depth_noise: self.depth_noise,
+            depth_edge_px: self.depth_edge_px,
+            track_noise_px: self.track_noise_px,
+            track_drift_fraction: self.track_drift_fraction,
+            track_drift_px: self.track_drift_px,
+            visibility_lag: self.visibility_lag,
+            visibility_flip: self.visibility_flip,
+        }
+    }
 }
 
 mod defaults {
@@ -166,6 +225,36 @@ mod defaults {
     }
     pub fn layout() -> super::Layout {
         super::Layout::Scene
+    }
+    pub fn priors() -> super::PriorKind {
+        super::PriorKind::Realistic
+    }
+    pub fn depth_scale_error() -> f64 {
+        0.02
+    }
+    pub fn depth_shift_error() -> f64 {
+        0.01
+    }
+    pub fn depth_noise() -> f64 {
+        0.03
+    }
+    pub fn depth_edge_px() -> f64 {
+        1.0
+    }
+    pub fn track_noise_px() -> f64 {
+        1.0
+    }
+    pub fn track_drift_fraction() -> f64 {
+        0.15
+    }
+    pub fn track_drift_px() -> f64 {
+        1.0
+    }
+    pub fn visibility_lag() -> u32 {
+        2
+    }
+    pub fn visibility_flip() -> f64 {
+        0.03
     }
 }
 
@@ -287,6 +376,26 @@ fn check(p: &SynthParams) -> Result<(), Error> {
     }
     if p.gaussians == 0 {
         return param("gaussians", "must be at least 1");
+    }
+    let lv = p.levels();
+    for (flag, v) in [
+        ("depth-scale-error", lv.depth_scale_error),
+        ("depth-shift-error", lv.depth_shift_error),
+        ("depth-noise", lv.depth_noise),
+        ("depth-edge-px", lv.depth_edge_px),
+        ("track-noise-px", lv.track_noise_px),
+        ("track-drift-px", lv.track_drift_px),
+    ] {
+        if !(v >= 0.0 && v.is_finite()) {
+            return param(flag, "must be finite and non-negative");
+        }
+    }
+    for (flag, v) in
+        [("track-drift-fraction", lv.track_drift_fraction), ("visibility-flip", lv.visibility_flip)]
+    {
+        if !(0.0..=1.0).contains(&v) {
+            return param(flag, "must be in [0, 1]");
+        }
     }
     Ok(())
 }
@@ -465,13 +574,18 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
         }
     }
     let mut t2 = Tracks2dWriter::create(&p.out.join("tracks_2d.parquet"), track_pts.len(), &prov)?;
+    let realistic = p.priors == PriorKind::Realistic;
+    let levels = p.levels();
+    let mut exact_tracks: Vec<Tracks2dFrame> = Vec::new();
+    let (mut depth_err, mut depth_px) = (0.0f64, 0usize);
     let ss = p.supersample as usize;
     let shade_fn = |tri: u32, b: [f32; 3]| shader.color(tri, b);
     let bar = ctx.progress(cams.len() as u64, "render");
     let mut next_train = 0u32;
     for (&(eval, frame), idx) in &by_frame {
         let pos = posed(frame as usize);
-        let out: Vec<Option<(raster::View, raster::Samples, Tracks2dFrame)>> = idx
+        type TrainOut = (raster::View, raster::Samples, Tracks2dFrame, (f64, usize));
+        let out: Vec<Option<TrainOut>> = idx
             .par_iter()
             .map(|&i| -> Result<_, Error> {
                 let cam = &cams[i];
@@ -496,6 +610,28 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
                 if eval {
                     return Ok(None);
                 }
+                let mut err = (0.0, 0);
+                if realistic {
+                    let prior = priors::depth_prior(
+                        &r.depth,
+                        view.width,
+                        view.height,
+                        cam.frame,
+                        p.seed,
+                        &levels,
+                    );
+                    for (a, b) in prior.iter().zip(&r.depth) {
+                        if *b > 0.0 {
+                            err.0 += ((a - b) / b).abs() as f64;
+                            err.1 += 1;
+                        }
+                    }
+                    write_npy_f32(
+                        &p.out.join(PRIORS_DIR).join(depth_rel(cam)),
+                        &[view.height, view.width],
+                        &prior,
+                    )?;
+                }
                 let mut f = Tracks2dFrame::default();
                 for s in &track_pts {
                     let (q, vis) = raster::visibility(
@@ -509,10 +645,10 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
                     f.xy.push(q);
                     f.visible.push(vis);
                 }
-                Ok(Some((view, samples, f)))
+                Ok(Some((view, samples, f, err)))
             })
             .collect::<Result<_, Error>>()?;
-        for (view, samples, f) in out.into_iter().flatten() {
+        for (view, samples, f, err) in out.into_iter().flatten() {
             if frame != next_train {
                 return Err(Error::Param {
                     flag: "trajectory",
@@ -522,6 +658,11 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
                 });
             }
             t2.write(&f)?;
+            depth_err += err.0;
+            depth_px += err.1;
+            if realistic {
+                exact_tracks.push(f);
+            }
             next_train += 1;
             if let Some(c) = &mut covis
                 && c.wants(frame)
@@ -532,6 +673,32 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     }
     t2.finish()?;
     bar.finish_and_clear();
+    let (w0, h0) = cams
+        .iter()
+        .find(|c| c.split == Split::Train)
+        .map_or((1, 1), |c| (c.width as usize, c.height as usize));
+    let measured = realistic
+        .then(|| -> Result<priors::Measured, Error> {
+            let (prior, drifting) = priors::track_priors(&exact_tracks, w0, h0, p.seed, &levels);
+            let mut w = Tracks2dWriter::create(
+                &p.out.join(PRIORS_DIR).join("tracks_2d.parquet"),
+                track_pts.len(),
+                &prov,
+            )?;
+            for f in &prior {
+                w.write(f)?;
+            }
+            w.finish()?;
+            let (delta, oa) = priors::track_errors(&exact_tracks, &prior, w0, h0);
+            Ok(priors::Measured {
+                depth_abs_rel: depth_err / depth_px.max(1) as f64,
+                track_delta_avg: delta,
+                occlusion_accuracy: oa,
+                drifting_tracks: drifting,
+            })
+        })
+        .transpose()?;
+    write_manifest(p, measured)?;
 
     let scene = Scene { dir: p.out.clone(), cameras: cams };
     scene.save(&prov)?;
@@ -559,6 +726,44 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
         dycheck::write_layout(&scene, &p.out.join("dycheck"), ctx)?;
     }
     Ok(Summary { frames: num_train, images: scene.cameras.len(), triangles: tris.len() })
+}
+
+/// Directory of the realistic priors inside the scene.
+const PRIORS_DIR: &str = "priors";
+
+/// `priors.json`: which files a monocular pipeline sees and which are ground truth.
+fn write_manifest(p: &SynthParams, measured: Option<priors::Measured>) -> Result<(), Error> {
+    let realistic = p.priors == PriorKind::Realistic;
+    let (depth_prefix, tracks) = if realistic {
+        (format!("{PRIORS_DIR}/"), format!("{PRIORS_DIR}/tracks_2d.parquet"))
+    } else {
+        (String::new(), "tracks_2d.parquet".to_string())
+    };
+    let json = serde_json::json!({
+        "priors": p.priors,
+        "monocular_inputs": {
+            "cameras": "cameras.parquet, rows of split 'train'",
+            "rgb": "image_path of the training cameras",
+            "mask": "mask_path of the training cameras (foreground segmentation, exact)",
+            "depth_prefix": depth_prefix,
+            "depth": format!("{depth_prefix}<depth_path of the training cameras>"),
+            "tracks_2d": tracks,
+        },
+        "ground_truth": [
+            "depth_path of every camera (exact z-depth)",
+            "tracks_2d.parquet (exact projections and visibility)",
+            "tracks_3d.parquet",
+            "oracle/ (the oracle 4D Gaussian model)",
+            "image_path and mask_path of the eval cameras",
+            "dycheck/ (the DyCheck layout, when written)",
+        ],
+        "levels": realistic.then(|| p.levels()),
+        "measured": measured,
+    });
+    let text = serde_json::to_string_pretty(&json).unwrap_or_default();
+    crate::util::fs::write_atomic(&Scene::priors_path(&p.out), text.as_bytes())
+        .map_err(crate::formats::Error::from)?;
+    Ok(())
 }
 
 fn depth_rel(c: &Camera) -> String {

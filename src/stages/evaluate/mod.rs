@@ -126,6 +126,32 @@ pub struct EvaluateParams {
     #[arg(long, num_args = 2.., value_names = ["A", "B"], conflicts_with_all = ["renders", "scene", "out", "fail_below", "model"])]
     #[serde(default)]
     pub compare: Option<Vec<PathBuf>>,
+    /// Score the eval views (default) or the training views (how well a model fits its
+    /// input video; no per-view-range rows).
+    #[arg(long, value_enum, default_value_t = EvalSplit::Eval)]
+    #[serde(default)]
+    pub split: EvalSplit,
+}
+
+/// The views `evaluate` scores.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    Default,
+    PartialEq,
+    Eq,
+    clap::ValueEnum,
+    serde::Serialize,
+    serde::Deserialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum EvalSplit {
+    /// The held-out evaluation views.
+    #[default]
+    Eval,
+    /// The training video.
+    Train,
 }
 
 /// Run the stage.
@@ -138,7 +164,14 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
         anyhow::bail!("evaluate needs --renders, --scene and --out (or --compare A B)");
     };
     let _span = tracing::info_span!("evaluate").entered();
-    let scene = Scene::load(scene_dir)?;
+    let mut scene = Scene::load(scene_dir)?;
+    if p.split == EvalSplit::Train {
+        // The training views, scored like eval views (offset 0: in no view range).
+        scene.cameras.retain(|c| c.split == crate::scene::Split::Train);
+        for c in &mut scene.cameras {
+            c.split = crate::scene::Split::Eval;
+        }
+    }
     let method = p.method.clone().unwrap_or_else(|| dir_label(renders));
     let lpips = match p.lpips {
         LpipsMode::Off => None,
