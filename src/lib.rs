@@ -33,6 +33,8 @@ pub mod pipeline;
 pub mod render;
 pub mod scene;
 pub mod stages;
+#[cfg(test)]
+mod table_tests;
 pub mod tables;
 pub mod tools;
 pub mod util;

@@ -210,7 +210,7 @@ mod tests {
     /// [`Model::splat_inputs`] hands the renderer.
     #[test]
     fn sh_frame_is_a_model_property() {
-        let (mut g, frames) = crate::tables::tests::sample_model();
+        let (mut g, frames) = crate::table_tests::sample_model();
         g.sh_degree = 1;
         g.sh_rest = vec![0.1; g.len() * 9];
         for (name, prov, want) in [

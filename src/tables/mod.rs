@@ -23,9 +23,6 @@ pub mod trajectories;
 pub mod uncertainty;
 pub mod validate;
 
-#[cfg(test)]
-pub(crate) mod tests;
-
 use std::path::PathBuf;
 
 use arrow::datatypes::SchemaRef;

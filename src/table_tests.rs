@@ -1,11 +1,13 @@
 //! Round trips, validation messages and the schema-versus-documentation check of the
-//! lead-owned tables.
+//! tables, through the model and scene directories that store them (so these tests sit
+//! above `tables`, `model` and `scene`, not inside `tables`).
 
 use std::path::{Path, PathBuf};
 
-use super::*;
 use crate::model::{FrameState, Gaussians, Model};
 use crate::scene::{Camera, Scene, Split};
+use crate::tables::io::{self, TableReader};
+use crate::tables::*;
 
 /// Parse the `| column | type | ...` rows of a `data_schema/*.md` file.
 fn documented_columns(md: &str) -> Vec<(String, String)> {
