@@ -21,6 +21,10 @@ fn allowed(top: &str) -> &'static [&'static str] {
         "render" => &["util", "math"],
         "tables" => &["util", "math", "formats"],
         "model" | "scene" => &["util", "context", "math", "formats", "tables", "render", "scene"],
+        // Test-only: round trips of the tables through model and scene directories.
+        "table_tests" => {
+            &["util", "context", "math", "formats", "tables", "render", "model", "scene"]
+        }
         "metrics" => &["util", "context", "math", "formats", "tables", "render", "model", "scene"],
         "datasets" | "stages" | "import" => &[
             "util", "context", "math", "formats", "tables", "render", "model", "scene", "metrics",
