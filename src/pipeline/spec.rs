@@ -45,12 +45,27 @@ pub struct Pipeline {
     pub stages: Vec<Stage>,
 }
 
-/// A parameter or foreach value: a scalar (kept as its canonical text) or a flat map of
-/// scalars (foreach items only).
+/// A foreach item or list-parameter element: a scalar (kept as its canonical text) or a
+/// flat map of scalars.
 #[derive(Debug, Clone, PartialEq)]
 enum Value {
     Scalar(String),
     Map(BTreeMap<String, String>),
+}
+
+/// A parameter: a scalar, interpolated as text, or a list of items that a stage iterates
+/// with `foreach: ${name}` (a list of sequence directories, say).
+#[derive(Debug, Clone, PartialEq)]
+enum Param {
+    Scalar(String),
+    List(Vec<Value>),
+}
+
+/// What a `foreach` iterates: its own list, or a list parameter named as `${name}`.
+#[derive(Debug)]
+enum Foreach {
+    Items(Vec<Value>),
+    Param(String),
 }
 
 /// A YAML node as parsed, with its location. The schema is checked by hand on this tree
@@ -191,16 +206,12 @@ impl Schema<'_> {
         }
     }
 
-    /// A scalar, or (with `maps`) a flat map of scalars.
-    fn value(&self, at: &Spanned<Node>, key: &str, maps: bool) -> Result<Value, Error> {
-        let what = if maps {
-            "a string, number, boolean or a map of them"
-        } else {
-            "a string, number or boolean"
-        };
+    /// A scalar or a flat map of scalars.
+    fn value(&self, at: &Spanned<Node>, key: &str) -> Result<Value, Error> {
+        let what = "a string, number, boolean or a map of them";
         match &at.value {
             Node::Scalar(s) => Ok(Value::Scalar(s.clone())),
-            Node::Map(m) if maps => m
+            Node::Map(m) => m
                 .iter()
                 .map(|(k, v)| match &v.value {
                     Node::Scalar(s) => Ok((k.clone(), s.clone())),
@@ -214,6 +225,11 @@ impl Schema<'_> {
                 .map(Value::Map),
             _ => Err(self.expected(at, key, what)),
         }
+    }
+
+    /// The items of a foreach list or list parameter: scalars or flat maps of scalars.
+    fn items(&self, items: &[Spanned<Node>], key: &str) -> Result<Vec<Value>, Error> {
+        items.iter().enumerate().map(|(i, item)| self.value(item, &format!("{key} {i}"))).collect()
     }
 
     /// Reject keys outside `allowed`; return the value of each allowed key.
@@ -250,10 +266,19 @@ impl Schema<'_> {
         let mut out = RawPipeline { params: Vec::new(), stages: Vec::new() };
         if let Some(params) = params.filter(|p| !matches!(p.value, Node::Null)) {
             for (name, v) in self.map(params, "`params`", "a map of parameter names to values")? {
-                out.params.push((
-                    name.clone(),
-                    self.value(v, &format!("parameter `{}`", shown(name)), false)?,
-                ));
+                let key = format!("parameter `{}`", shown(name));
+                let param = match &v.value {
+                    Node::Seq(items) => Param::List(self.items(items, &format!("{key} item"))?),
+                    Node::Scalar(s) => Param::Scalar(s.clone()),
+                    _ => {
+                        return Err(self.expected(
+                            v,
+                            &key,
+                            "a string, number, boolean or a list of items",
+                        ));
+                    }
+                };
+                out.params.push((name.clone(), param));
             }
         }
         let Some(stages) = stages else {
@@ -269,16 +294,19 @@ impl Schema<'_> {
             let foreach = match foreach.filter(|f| !matches!(f.value, Node::Null)) {
                 None => None,
                 Some(f) => match &f.value {
-                    Node::Seq(items) => Some(
-                        items
-                            .iter()
-                            .enumerate()
-                            .map(|(i, item)| {
-                                self.value(item, &format!("{ctx}`foreach` item {i}"), true)
-                            })
-                            .collect::<Result<Vec<_>, _>>()?,
-                    ),
-                    _ => return Err(self.expected(f, &key("foreach"), "a list of items")),
+                    Node::Seq(items) => {
+                        Some(Foreach::Items(self.items(items, &format!("{ctx}`foreach` item"))?))
+                    }
+                    Node::Scalar(s) if list_reference(s).is_some() => {
+                        Some(Foreach::Param(list_reference(s).unwrap_or_default().to_string()))
+                    }
+                    _ => {
+                        return Err(self.expected(
+                            f,
+                            &key("foreach"),
+                            "a list of items or `${name}` of a list parameter",
+                        ));
+                    }
                 },
             };
             let body = match body.filter(|b| !matches!(b.value, Node::Null)) {
@@ -314,7 +342,7 @@ impl Schema<'_> {
 /// The file as written.
 #[derive(Debug)]
 struct RawPipeline {
-    params: Vec<(String, Value)>,
+    params: Vec<(String, Param)>,
     stages: Vec<(String, RawStage)>,
 }
 
@@ -324,7 +352,7 @@ struct RawStage {
     cmd: Option<String>,
     deps: Option<Vec<String>>,
     outs: Option<Vec<String>>,
-    foreach: Option<Vec<Value>>,
+    foreach: Option<Foreach>,
     body: Option<RawBody>,
 }
 
@@ -371,27 +399,24 @@ impl Pipeline {
         }
         let raw = Schema { file }.pipeline(&root)?;
         let invalid = |message: String| Error::Invalid { file: file.into(), message };
-        let mut params = BTreeMap::new();
-        for (name, v) in raw.params {
-            if let Value::Scalar(s) = v {
-                params.insert(name, s);
-            }
-        }
+        let mut params: BTreeMap<String, Param> = raw.params.into_iter().collect();
         for set in sets {
             let (name, value) = parse_set(set).ok_or_else(|| Error::BadArgument {
                 file: file.into(),
                 message: format!("--set `{}`: expected NAME=VALUE", shown(set)),
             })?;
-            if !params.contains_key(&name) {
-                return Err(Error::BadArgument {
-                    file: file.into(),
-                    message: format!(
-                        "--set `{}`: no parameter `{}` in the pipeline",
-                        shown(set),
-                        shown(&name)
-                    ),
-                });
-            }
+            let bad = |message: String| Error::BadArgument {
+                file: file.into(),
+                message: format!("--set `{}`: {message}", shown(set)),
+            };
+            let value = match params.get(&name) {
+                None => return Err(bad(format!("no parameter `{}` in the pipeline", shown(&name)))),
+                Some(Param::Scalar(_)) => Param::Scalar(value),
+                Some(Param::List(_)) => Param::List(
+                    parse_list(&value)
+                        .ok_or_else(|| bad(format!("`{name}` is a list parameter: expected a YAML list such as [a, b]")))?,
+                ),
+            };
             params.insert(name, value);
         }
         let base = match file.parent() {
@@ -407,12 +432,30 @@ impl Pipeline {
                 )));
             }
             match (rs.foreach, rs.body) {
-                (Some(items), Some(body)) => {
+                (Some(foreach), Some(body)) => {
                     if rs.cmd.is_some() || rs.deps.is_some() || rs.outs.is_some() {
                         return Err(invalid(format!(
                             "stage `{name}`: a foreach stage puts cmd, deps and outs under `do`"
                         )));
                     }
+                    let items = match &foreach {
+                        Foreach::Items(items) => items,
+                        Foreach::Param(p) => match params.get(p) {
+                            Some(Param::List(items)) => items,
+                            Some(Param::Scalar(_)) => {
+                                return Err(invalid(format!(
+                                    "stage `{name}`: `foreach: ${{{p}}}` names a scalar parameter, not a list"
+                                )));
+                            }
+                            None => {
+                                return Err(Error::UnknownParam {
+                                    file: file.into(),
+                                    stage: name.clone(),
+                                    name: shown(p).into_owned(),
+                                });
+                            }
+                        },
+                    };
                     for (i, item) in items.iter().enumerate() {
                         let stage_name = match item {
                             Value::Scalar(s) => format!("{name}@{s}"),
@@ -472,6 +515,34 @@ fn yaml_options() -> serde_saphyr::Options {
     serde_saphyr::options! { with_snippet: false, strict_booleans: true, leading_zero_numbers_as_strings: true }
 }
 
+/// `${name}` alone: a foreach naming a list parameter.
+fn list_reference(s: &str) -> Option<&str> {
+    let name = s.trim().strip_prefix("${")?.strip_suffix('}')?.trim();
+    (!name.is_empty() && !name.contains(['$', '{', '}'])).then_some(name)
+}
+
+/// The value of `--set LIST=[a, b]`: a YAML list of scalars or flat maps of scalars.
+fn parse_list(value: &str) -> Option<Vec<Value>> {
+    match serde_saphyr::from_str_with_options::<Node>(value, yaml_options()).ok()? {
+        Node::Seq(items) => items
+            .into_iter()
+            .map(|i| match i.value {
+                Node::Scalar(s) => Some(Value::Scalar(s)),
+                Node::Map(m) => m
+                    .into_iter()
+                    .map(|(k, v)| match v.value {
+                        Node::Scalar(s) => Some((k, s)),
+                        _ => None,
+                    })
+                    .collect::<Option<_>>()
+                    .map(Value::Map),
+                _ => None,
+            })
+            .collect(),
+        _ => None,
+    }
+}
+
 /// Split `NAME=VALUE`; the value is canonicalised like a YAML scalar (`0.50` → `0.5`) so
 /// that setting a parameter to the value written in the file gives the same stage key.
 fn parse_set(set: &str) -> Option<(String, String)> {
@@ -491,7 +562,7 @@ fn parse_set(set: &str) -> Option<(String, String)> {
 struct Interp<'a> {
     file: &'a Path,
     stage: &'a str,
-    params: &'a BTreeMap<String, String>,
+    params: &'a BTreeMap<String, Param>,
     item: Option<&'a Value>,
 }
 
@@ -561,9 +632,19 @@ impl Interp<'_> {
                 _ => {}
             }
         }
-        let value = self.params.get(name).ok_or_else(unknown)?;
-        used.insert(name.to_string(), value.clone());
-        Ok(value.clone())
+        match self.params.get(name).ok_or_else(unknown)? {
+            Param::Scalar(value) => {
+                used.insert(name.to_string(), value.clone());
+                Ok(value.clone())
+            }
+            Param::List(_) => Err(Error::Invalid {
+                file: self.file.into(),
+                message: format!(
+                    "stage `{}`: parameter `{name}` is a list: iterate it with `foreach: ${{{name}}}`",
+                    shown(self.stage)
+                ),
+            }),
+        }
     }
 }
 
@@ -596,6 +677,26 @@ mod tests {
 
     fn parse(text: &str) -> Result<Pipeline, Error> {
         Pipeline::parse(Path::new("dir/p.yaml"), text, &[])
+    }
+
+    #[test]
+    fn foreach_iterates_a_list_parameter_that_set_replaces() {
+        let text = "params:\n  seqs: [a, b]\n  n: 2\nstages:\n  imp:\n    foreach: ${seqs}\n    do:\n      cmd: synth --frames ${n} --out 'out/${item}'\n      outs: ['out/${item}']\n";
+        let names = |p: Pipeline| p.stages.iter().map(|s| s.name.clone()).collect::<Vec<_>>();
+        assert_eq!(names(parse(text).unwrap()), ["imp@a", "imp@b"]);
+        let set = |v: &str| Pipeline::parse(Path::new("dir/p.yaml"), text, &[v.to_string()]);
+        assert_eq!(names(set("seqs=[x, y, z]").unwrap()), ["imp@x", "imp@y", "imp@z"]);
+        let e = set("seqs=x").unwrap_err().to_string();
+        assert!(e.contains("`seqs` is a list parameter"), "{e}");
+        let e = parse("params:\n  seqs: [a]\nstages:\n  s: {cmd: 'x ${seqs}'}\n").unwrap_err();
+        assert!(e.to_string().contains("parameter `seqs` is a list"), "{e}");
+        let e = parse("params:\n  n: 1\nstages:\n  s:\n    foreach: ${n}\n    do: {cmd: x}\n")
+            .unwrap_err();
+        assert!(e.to_string().contains("names a scalar parameter"), "{e}");
+        let e = parse("stages:\n  s:\n    foreach: ${nope}\n    do: {cmd: x}\n").unwrap_err();
+        assert!(e.to_string().contains("nope"), "{e}");
+        let e = parse("stages:\n  s:\n    foreach: abc\n    do: {cmd: x}\n").unwrap_err();
+        assert!(e.to_string().contains("a list of items or `${name}`"), "{e}");
     }
 
     #[test]
@@ -663,8 +764,8 @@ mod tests {
     fn type_errors_name_the_key_and_what_was_expected() {
         let cases = [
             (
-                "params:\n  seed: [1, 2]\nstages:\n  a: {cmd: x}\n",
-                "dir/p.yaml: line 2 column 9: parameter `seed`: expected a string, number or boolean, found a list",
+                "params:\n  seed: {a: 1}\nstages:\n  a: {cmd: x}\n",
+                "dir/p.yaml: line 2 column 9: parameter `seed`: expected a string, number, boolean or a list of items, found a map",
             ),
             (
                 "stages:\n  a:\n    cmd: [x, y]\n",

@@ -126,6 +126,11 @@ pub struct SynthParams {
     #[arg(long, default_value_t = 2, help_heading = "Protocol")]
     #[serde(default = "defaults::trajectory_factor")]
     pub trajectory_factor: u32,
+    /// Keep every S-th frame of the `--trajectory` path (training and validation cameras
+    /// alike), renumbered 0, 1, 2, ...; the animation advances one sample per kept frame.
+    #[arg(long, default_value_t = 1, help_heading = "Protocol")]
+    #[serde(default = "defaults::trajectory_stride")]
+    pub trajectory_stride: u32,
     /// Output layout.
     #[arg(long, value_enum, default_value_t = Layout::Scene, help_heading = "Output")]
     #[serde(default = "defaults::layout")]
@@ -219,6 +224,9 @@ mod defaults {
     }
     pub fn tracks() -> u32 {
         1024
+    }
+    pub fn trajectory_stride() -> u32 {
+        1
     }
     pub fn trajectory_factor() -> u32 {
         2
@@ -362,6 +370,9 @@ fn check(p: &SynthParams) -> Result<(), Error> {
     if p.width == 0 || p.height == 0 || p.width > 16384 || p.height > 16384 {
         return param("width", "width and height must be in 1..=16384");
     }
+    if p.trajectory_stride == 0 {
+        return param("trajectory-stride", "must be at least 1");
+    }
     if !(1..=8).contains(&p.supersample) {
         return param("supersample", "must be in 1..=8");
     }
@@ -419,8 +430,11 @@ fn protocol_cameras(p: &SynthParams) -> Result<(Vec<Camera>, bool), Error> {
                 flag: "trajectory",
                 msg: format!("'{t}' is not of the form dycheck:DIR"),
             })?;
+            let stride = p.trajectory_stride;
             let mut cams = dycheck::read_camera_path(Path::new(dir), p.trajectory_factor)?;
+            cams.retain(|c| c.frame % stride == 0);
             for c in &mut cams {
+                c.frame /= stride;
                 let (rgb, depth, mask) = cameras::paths(&c.camera, c.frame);
                 (c.image_path, c.depth_path, c.mask_path) = (rgb, Some(depth), Some(mask));
                 c.distortion = None;
