@@ -457,6 +457,17 @@ impl Pipeline {
                         },
                     };
                     for (i, item) in items.iter().enumerate() {
+                        // `${param}` inside an item's values (`dir: ${out}/seq`)
+                        let outer = Interp { file, stage: &name, params: &params, item: None };
+                        let text = |v: &String| outer.interpolate(v, &mut BTreeMap::new());
+                        let item = &match item {
+                            Value::Scalar(s) => Value::Scalar(text(s)?),
+                            Value::Map(m) => Value::Map(
+                                m.iter()
+                                    .map(|(k, v)| Ok((k.clone(), text(v)?)))
+                                    .collect::<Result<_, Error>>()?,
+                            ),
+                        };
                         let stage_name = match item {
                             Value::Scalar(s) => format!("{name}@{s}"),
                             Value::Map(_) => format!("{name}@{i}"),
@@ -681,11 +692,12 @@ mod tests {
 
     #[test]
     fn foreach_iterates_a_list_parameter_that_set_replaces() {
-        let text = "params:\n  seqs: [a, b]\n  n: 2\nstages:\n  imp:\n    foreach: ${seqs}\n    do:\n      cmd: synth --frames ${n} --out 'out/${item}'\n      outs: ['out/${item}']\n";
+        let text = "params:\n  seqs: [a, b]\n  n: 2\n  out: o\n  dirs: ['${out}/d']\nstages:\n  imp:\n    foreach: ${seqs}\n    do:\n      cmd: synth --frames ${n} --out 'out/${item}'\n      outs: ['out/${item}']\n  use:\n    foreach: ${dirs}\n    do: {cmd: 'x ${item}'}\n";
         let names = |p: Pipeline| p.stages.iter().map(|s| s.name.clone()).collect::<Vec<_>>();
-        assert_eq!(names(parse(text).unwrap()), ["imp@a", "imp@b"]);
+        assert_eq!(names(parse(text).unwrap()), ["imp@a", "imp@b", "use@o/d"]);
+        assert_eq!(parse(text).unwrap().stages[2].argv, ["x", "o/d"]);
         let set = |v: &str| Pipeline::parse(Path::new("dir/p.yaml"), text, &[v.to_string()]);
-        assert_eq!(names(set("seqs=[x, y, z]").unwrap()), ["imp@x", "imp@y", "imp@z"]);
+        assert_eq!(names(set("seqs=[x, y, z]").unwrap()), ["imp@x", "imp@y", "imp@z", "use@o/d"]);
         let e = set("seqs=x").unwrap_err().to_string();
         assert!(e.contains("`seqs` is a list parameter"), "{e}");
         let e = parse("params:\n  seqs: [a]\nstages:\n  s: {cmd: 'x ${seqs}'}\n").unwrap_err();

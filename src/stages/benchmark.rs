@@ -162,10 +162,12 @@ pub fn run(p: &BenchmarkParams, ctx: &Context) -> anyhow::Result<()> {
     let pick = |scene: Option<&String>, ms: &[&String]| -> Vec<(String, Evaluation)> {
         ms.iter()
             .map(|m| {
-                let e = match scene {
+                let mut e = match scene {
                     Some(s) => table[&(s.clone(), (*m).clone())].clone(),
                     None => means[m].clone(),
                 };
+                // the heading names the scene as the --eval label does, not the directory
+                e.summary.scene = scene.cloned().unwrap_or_else(|| "the mean over scenes".into());
                 ((*m).clone(), e)
             })
             .collect()
