@@ -10,6 +10,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use serde_json::Value;
+
+use crate::util::copy_dir;
 use usplat4d::context::Context;
 use usplat4d::datasets::dycheck::{read_camera_path, write_layout};
 use usplat4d::formats::{self, png::Image};
@@ -40,19 +42,6 @@ fn import(data: &Path, out: &Path, extra: &[&str]) -> (i32, String) {
         vec!["import", "dycheck", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()];
     args.extend_from_slice(extra);
     usplat4d(&args)
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let dst = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &dst);
-        } else {
-            std::fs::copy(e.path(), dst).unwrap();
-        }
-    }
 }
 
 fn read_json(path: &Path) -> Value {

@@ -4,6 +4,7 @@
 mod util;
 
 mod bad_inputs;
+mod benchmark_pipelines;
 mod dycheck;
 mod evaluate;
 mod gpu;

@@ -410,12 +410,15 @@ impl Pipeline {
                 message: format!("--set `{}`: {message}", shown(set)),
             };
             let value = match params.get(&name) {
-                None => return Err(bad(format!("no parameter `{}` in the pipeline", shown(&name)))),
+                None => {
+                    return Err(bad(format!("no parameter `{}` in the pipeline", shown(&name))));
+                }
                 Some(Param::Scalar(_)) => Param::Scalar(value),
-                Some(Param::List(_)) => Param::List(
-                    parse_list(&value)
-                        .ok_or_else(|| bad(format!("`{name}` is a list parameter: expected a YAML list such as [a, b]")))?,
-                ),
+                Some(Param::List(_)) => Param::List(parse_list(&value).ok_or_else(|| {
+                    bad(format!(
+                        "`{name}` is a list parameter: expected a YAML list such as [a, b]"
+                    ))
+                })?),
             };
             params.insert(name, value);
         }

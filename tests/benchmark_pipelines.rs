@@ -1,0 +1,78 @@
+//! The two benchmark pipelines run end to end at the reduced sizes their headers give:
+//! `pipelines/extreme-view.yaml` (four models, base fit, vanilla continued, USplat4D with
+//! both profiles and the four ablations, benchmark and report) and `pipelines/dycheck.yaml`
+//! (the synthetic DyCheck-layout Fox along the paper-windmill path, masked metrics and PCK-T).
+
+use crate::util::{Dir, copy_dir, repo};
+
+/// A copy of `pipelines/FILE` and `pipelines/data` in a fresh directory, so the run's lock
+/// file, cache and outputs stay out of the repository.
+fn pipeline(file: &str) -> Dir {
+    let d = Dir::new();
+    std::fs::copy(repo().join("pipelines").join(file), d.join(file)).unwrap();
+    copy_dir(&repo().join("pipelines/data"), &d.join("data"));
+    d
+}
+
+fn run(d: &Dir, file: &str, sets: &[&str]) -> String {
+    let mut args = vec!["pipeline", "run", file];
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    d.ok(&args)
+}
+
+#[test]
+fn extreme_view_pipeline_writes_the_paper_tables_for_four_models() {
+    let d = pipeline("extreme-view.yaml");
+    let sets =
+        ["frames=6", "size=48", "gaussians=1000", "init_gaussians=500", "base_steps=6", "steps=3"];
+    let out = run(&d, "extreme-view.yaml", &sets);
+    assert!(out.contains("157 stages: 157 run"), "{out}");
+    let md = std::fs::read_to_string(d.join("out/extreme-view/benchmark/benchmark.md")).unwrap();
+    for model in ["Fox", "CesiumMan", "RiggedFigure", "RiggedSimple"] {
+        assert!(md.contains(&format!("usplat4d-release on {model} (Δ against vanilla)")), "{md}");
+        let page = d.join(&format!("out/extreme-view/{model}/report/report.html"));
+        assert!(std::fs::read_to_string(page).unwrap().trim_end().ends_with("</html>"));
+    }
+    assert!(md.contains("on the mean over scenes"), "{md}");
+    assert!(md.contains("## Ablations (Table 3 form), mean over scenes"), "{md}");
+    for range in ["(0°, 60°]", "(60°, 120°]", "(120°, 180°]"] {
+        for m in ["base", "usplat4d-paper", "ablation-a", "ablation-b", "ablation-c", "ablation-d"]
+        {
+            assert!(md.contains(&format!("| {range} | {m} |")), "{range} {m}:\n{md}");
+        }
+    }
+    assert!(md.contains("| 3D EPE |"), "{md}");
+    assert!(d.join("out/extreme-view/benchmark/benchmark.parquet").exists());
+    // a second run has nothing to do
+    let again = run(&d, "extreme-view.yaml", &sets);
+    assert!(again.contains("all 157 stages up to date"), "{again}");
+}
+
+#[test]
+fn dycheck_pipeline_runs_out_of_the_box_on_the_windmill_fox() {
+    let d = pipeline("dycheck.yaml");
+    let sets = [
+        "example_factor=16",
+        "example_stride=20",
+        "gaussians=1000",
+        "init_gaussians=800",
+        "base_steps=20",
+        "steps=3",
+    ];
+    let out = run(&d, "dycheck.yaml", &sets);
+    assert!(out.contains("18 stages: 18 run"), "{out}");
+    let bench = d.join("out/dycheck/fox-windmill/benchmark/benchmark.md");
+    let md = std::fs::read_to_string(bench).unwrap();
+    assert!(md.contains("vanilla vs base vs usplat4d on fox-windmill"), "{md}");
+    assert!(md.contains("| all | usplat4d |"), "{md}");
+    let eval = d.join("out/dycheck/fox-windmill/eval/usplat4d");
+    let files: Vec<String> = std::fs::read_dir(eval)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(files.iter().any(|f| f.ends_with(".md")), "{files:?}");
+    let page = d.join("out/dycheck/fox-windmill/report/report.html");
+    assert!(std::fs::read_to_string(page).unwrap().contains("PCK-T"));
+}
