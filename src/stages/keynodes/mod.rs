@@ -662,6 +662,14 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
             None => String::new(),
         },
     ));
+    if n_key == 0 {
+        ctx.warn(format!(
+            "keynodes: no key node: no Gaussian of {} is reliable for a significant period \
+             (the base model may be fitted too poorly, or the video is too short); the \
+             usplat4d recipe then has no key anchors",
+            p.model.display()
+        ));
+    }
     let prov = crate::tables::Provenance::new(
         "keynodes",
         &serde_json::json!({ "params": p, "resolved": settings, "outcome": report }),

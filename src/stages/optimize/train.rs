@@ -260,6 +260,15 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     // Gaussians culled by key-node selection leave the model at the start (release row 35).
     let keep: Vec<bool> =
         model.gaussians.id.iter().map(|i| role.get(i) != Some(&Role::Culled)).collect();
+    if !keep.contains(&true) {
+        anyhow::bail!(
+            "{}: key-node selection culled all {} Gaussians of {} (no key node was selected); \
+             nothing is left to optimise",
+            p.keynodes.as_deref().unwrap_or(std::path::Path::new("--keynodes")).display(),
+            keep.len(),
+            p.model.display()
+        );
+    }
     let scene_extent = extent(&model.frame(0)?.position);
 
     let mut settings_json = serde_json::to_value(&s)?;
