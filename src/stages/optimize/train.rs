@@ -305,13 +305,14 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         }
     }
     let render = RenderSettings::default();
+    let renderer = crate::stages::device::renderer(ctx)?;
     let bar = ctx.progress(s.steps as u64, "optimize");
     bar.set_position(c.step as u64);
     while c.step < s.steps {
         let step = c.step;
         let started = Instant::now();
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
-        let img = image_step(&c.state, &views, &batch, &s.image, &render)?;
+        let img = image_step(&renderer, &c.state, &views, &batch, &s.image, &render)?;
         let mut grads = img.grads;
         let mut terms: Vec<(String, f64)> = Vec::new();
         terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
