@@ -82,6 +82,7 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         key_anchor_weight: None,
         nonkey_anchor_weight: None,
         anchor_metric: None,
+        graph_reduction: None,
         r_z: None,
         lambda_vel: None,
         lambda_acc: None,
