@@ -393,15 +393,18 @@ impl GraphObjective {
         w
     }
 
-    /// The learned graph as an edges table (key-key: current w_ij; nonkey-key: the fixed
-    /// normalised weights) and the key-key rest lengths D_ij `[E_key]`.
-    pub fn learned_edges(&self) -> (Edges, Vec<f32>) {
+    /// The learned graph as an edges table: key-key edges with the current w_ij and learned
+    /// canonical length D_ij (release form; the paper form's fixed lengths are not learned
+    /// and left out), nonkey-key edges with their fixed normalised weights.
+    pub fn learned_edges(&self) -> Edges {
         let mut out = Edges::default();
         let w = self.key_weights();
         let id = |pose: u32| self.ids[pose as usize];
+        let learned = self.s.motion == MotionForm::Release;
         for e in 0..self.ksrc.len() {
             let (a, b) = (self.keys[self.ksrc[e] as usize], self.keys[self.kdst[e] as usize]);
-            out.push(id(a), id(b), EdgeKind::KeyKey, w[e] as f32);
+            let d = learned.then_some(self.rest[e]);
+            out.push_trained(id(a), id(b), EdgeKind::KeyKey, w[e] as f32, d);
         }
         for (u, &nk) in self.nonkeys.iter().enumerate() {
             for e in self.nk_off[u]..self.nk_off[u + 1] {
@@ -409,7 +412,34 @@ impl GraphObjective {
                 out.push(id(nk), id(key), EdgeKind::NonkeyKey, self.nk_w[e] as f32);
             }
         }
-        (out, self.rest.clone())
+        out
+    }
+
+    /// Take over the trained tensors of `old` (the objective before a density pass): the
+    /// key-key rest lengths by (source, destination) id, and each non-key's source pose by
+    /// its id, or, for a Gaussian that density control created, by the id of the input
+    /// Gaussian it descends from (`origin`; the release's `densify_params` copies the
+    /// parent's). The
+    /// key-key weights come in through the learned edges the objective was built from.
+    pub fn carry_over(&mut self, old: &GraphObjective, origin: impl Fn(u32) -> u32) {
+        let key_id = |o: &GraphObjective, k: u32| o.ids[o.keys[k as usize] as usize];
+        let rest: HashMap<(u32, u32), f32> = (0..old.ksrc.len())
+            .map(|e| ((key_id(old, old.ksrc[e]), key_id(old, old.kdst[e])), old.rest[e]))
+            .collect();
+        for e in 0..self.ksrc.len() {
+            let pair = (key_id(self, self.ksrc[e]), key_id(self, self.kdst[e]));
+            if let Some(&d) = rest.get(&pair) {
+                self.rest[e] = d;
+            }
+        }
+        let src: HashMap<u32, usize> =
+            old.nonkeys.iter().enumerate().map(|(u, &i)| (old.ids[i as usize], u)).collect();
+        for (u, &i) in self.nonkeys.iter().enumerate() {
+            let id = self.ids[i as usize];
+            let Some(&v) = src.get(&id).or_else(|| src.get(&origin(id))) else { continue };
+            self.src_p[3 * u..3 * u + 3].copy_from_slice(&old.src_p[3 * v..3 * v + 3]);
+            self.src_q[4 * u..4 * u + 4].copy_from_slice(&old.src_q[4 * v..4 * v + 4]);
+        }
     }
 
     /// The metric of frame t, Gaussian i: per-axis factors in the camera frame (already
@@ -1054,10 +1084,27 @@ mod tests {
     }
 
     #[test]
+    fn a_rebuilt_objective_keeps_the_trained_lengths_and_source_poses() {
+        let (mut old, _) = case(GraphSettings::defaults(Profile::Release));
+        old.rest.iter_mut().enumerate().for_each(|(e, d)| *d = 10.0 + e as f32);
+        old.src_p.iter_mut().enumerate().for_each(|(k, x)| *x = -1.0 - k as f32);
+        old.src_q.iter_mut().for_each(|x| *x = 0.5);
+        let (mut new, _) = case(GraphSettings::defaults(Profile::Release));
+        // the new objective's last non-key is Gaussian 200, created from 101
+        new.ids[6] = 200;
+        new.carry_over(&old, |id| if id == 200 { 101 } else { id });
+        assert_eq!(new.rest, old.rest);
+        assert_eq!(new.src_p[..9], old.src_p[..9], "non-keys 101, 103, 105 keep theirs");
+        assert_eq!(new.src_p[9..], old.src_p[..3], "200 takes its origin's");
+        assert!(new.src_q.iter().all(|&x| x == 0.5));
+    }
+
+    #[test]
     fn learned_edges_are_normalised_per_source() {
         let (obj, _) = case(GraphSettings::defaults(Profile::Release));
-        let (edges, rest) = obj.learned_edges();
-        assert_eq!(rest.len(), 6);
+        let edges = obj.learned_edges();
+        let rest: Vec<f32> = edges.rest_length.iter().flatten().copied().collect();
+        assert_eq!(rest, obj.rest, "the key-key edges carry their learned lengths");
         let kk: f32 = (0..edges.len())
             .filter(|&e| edges.kind[e] == EdgeKind::KeyKey && edges.src[e] == 100)
             .map(|e| edges.weight[e])

@@ -5,9 +5,9 @@
 //! - usplat4d: [`GraphObjective`] (L_key + L_non-key) on the graph of the trained Gaussians.
 //!   Its p° and u of a Gaussian are those of the input Gaussian it descends from
 //!   ([`TrainState::origin`]); a new Gaussian is a non-key with its origin's t̂ and edges.
-//!   At a density pass the objective is rebuilt with the learned key-key weights; the
-//!   non-keys' source poses and the learned rest lengths start again from their
-//!   initialisation (a simplification of the release's `densify_params`).
+//!   At a density pass the objective is rebuilt with the learned key-key weights and takes
+//!   over the learned rest lengths and the non-keys' trained source poses
+//!   ([`GraphObjective::carry_over`], the release's `densify_params`).
 
 use std::collections::HashMap;
 

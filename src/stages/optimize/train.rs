@@ -356,10 +356,16 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
             tracing::info!(step, ?r, n = c.state.n(), "density control");
             c.density = DensityStats::new(c.state.n());
             let learned = match &objective {
-                Objective::Graph(o) => Some(o.learned_edges().0),
+                Objective::Graph(o) => Some(o.learned_edges()),
                 Objective::Knn(_) => None,
             };
-            objective = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
+            let mut rebuilt = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
+            if let (Objective::Graph(new), Objective::Graph(old)) = (&mut rebuilt, &objective) {
+                let origin: HashMap<u32, u32> =
+                    c.state.ids.iter().copied().zip(c.state.origin.iter().copied()).collect();
+                new.carry_over(old, |id| origin.get(&id).copied().unwrap_or(id));
+            }
+            objective = rebuilt;
             c.adam.groups.truncate(6);
             if let Objective::Graph(o) = &mut objective {
                 add_graph_groups(&mut c.adam, o, &s);
@@ -396,7 +402,7 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
     let learned = match &objective {
-        Objective::Graph(o) => Some(o.learned_edges().0),
+        Objective::Graph(o) => Some(o.learned_edges()),
         Objective::Knn(_) => None,
     };
     write_outputs(p, &s, &c, graph.as_ref().zip(learned.as_ref()))?;
