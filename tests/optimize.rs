@@ -242,13 +242,40 @@ fn common_means(runs: &[Vec<Option<f64>>]) -> (usize, Vec<f64>) {
     (keep.len(), runs.iter().map(mean).collect())
 }
 
+/// Mean PSNR of `model`'s renders of the scene `S`'s evaluation views in the view range
+/// (120°, 180°] (the far views of `evaluate`).
+fn far_view_psnr(dir: &Dir, model: &str) -> f64 {
+    let (r, e) = (format!("{model}_renders"), format!("{model}_eval"));
+    dir.ok(&["render", "--model", model, "--scene", "S", "--split", "eval", "--out", &r]);
+    dir.ok(&["evaluate", "--renders", &r, "--scene", "S", "--out", &e, "--lpips", "off"]);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join(&e).join("summary.json")).unwrap())
+            .unwrap();
+    let far = json["groups"].as_array().unwrap().iter().find(|g| g["label"] == "(120°, 180°]");
+    far.and_then(|g| g["psnr"].as_f64()).expect("far views in the evaluation")
+}
+
 /// The recovery test of issue 11: a prior whose trajectories drift in the frames where points
 /// are not seen by the training camera (as `graph_fox` builds it). After the same number of
-/// steps, the usplat4d recipe leaves the drifted pairs closer to the ground truth than the
-/// vanilla recipe. Not validated here: far-view rendering quality (pipelines/fox.yaml).
+/// steps, the usplat4d recipe (paper profile, the default) should leave the drifted pairs
+/// closer to the ground truth than the vanilla recipe and render the far views
+/// ((120°, 180°]) better.
+///
+/// Ignored because it does not hold on this prior, measured (debug build, 30 steps; mean
+/// error over the drifted pairs, prior 0.195): vanilla 0.088, usplat4d paper 0.096 (with
+/// `--graph-reduction mean` 0.089, `--anchor-metric release` 0.118, ablation (c) 0.193), far
+/// PSNR vanilla 23.67 dB, paper 23.48 dB; at 120 steps vanilla 0.092, paper 0.104, release
+/// 0.285 on its 24 non-culled pairs. The cause is the DQB target, not the loss scaling: the
+/// recipe pulls a drifted non-key towards p^DQB, and on this 1,500-Gaussian, 12-frame fox
+/// p^DQB itself is 0.134 from the truth at the drifted pairs with the paper graph (0.074
+/// even with the oracle's key trajectories and source poses: the non-keys' key neighbours
+/// do not move with them), 0.325 with the release graph (0.275 with the oracle), while
+/// vanilla's temporal smoothing alone reaches 0.088; for 56 of the 142 pairs t̂ is itself a
+/// drifted frame (drifted points that became visible pass the colour gate there), so the
+/// source pose is wrong too. Run with `--ignored` to measure.
 #[test]
-#[ignore = "issue 11's recovery criterion is not met yet: on this prior usplat4d (paper 0.098, \
-            release 0.121) stays behind vanilla (0.085); run with --ignored to measure"]
+#[ignore = "issue 11's recovery criterion does not hold on this prior (vanilla 0.088 vs \
+            usplat4d paper 0.096; the DQB targets are 0.134 off); see the doc comment"]
 fn usplat4d_brings_drifted_points_closer_than_vanilla() {
     use usplat4d::util::rng::Rng;
     let dir = Dir::new();
@@ -314,16 +341,32 @@ fn usplat4d_brings_drifted_points_closer_than_vanilla() {
         dir.ok(&a);
         runs.push(drift_errors(&dir.join(&out), &truth, ids, &pairs));
     }
-    let (kept, m) = common_means(&runs);
-    let (prior, vanilla, ours) = (m[0], m[1], [m[2], m[3]]);
+    // Paper profile against vanilla on every drifted pair; the release culls most non-keys,
+    // so its numbers are over the pairs it keeps.
+    let (all, m) = common_means(&runs[..3]);
+    let (prior, vanilla, paper) = (m[0], m[1], m[2]);
+    let (kept, r) = common_means(&runs);
+    let psnr: Vec<f64> =
+        ["drifted", "V", "G_paper", "G_release"].iter().map(|m| far_view_psnr(&dir, m)).collect();
     println!(
-        "recovery on {kept} of {} drifted pairs (offset {offset:.3}): mean error prior \
-         {prior:.4}, vanilla {vanilla:.4}, usplat4d paper {:.4}, release {:.4}",
+        "recovery (offset {offset:.3}): mean error on {all} of {} drifted pairs: prior \
+         {prior:.4}, vanilla {vanilla:.4}, usplat4d paper {paper:.4}; on the {kept} pairs the \
+         release keeps: vanilla {:.4}, release {:.4}; far-view PSNR prior {:.2}, vanilla {:.2}, \
+         paper {:.2}, release {:.2} dB",
         pairs.len(),
-        ours[0],
-        ours[1]
+        r[1],
+        r[3],
+        psnr[0],
+        psnr[1],
+        psnr[2],
+        psnr[3]
     );
-    let pairs: Vec<_> = pairs.iter().take(kept).collect();
-    assert!(pairs.len() >= 50, "only {} drifted pairs", pairs.len());
-    assert!(ours[1] < vanilla, "usplat4d (release) {:.4} vs vanilla {vanilla:.4}", ours[1]);
+    assert!(all >= 50, "only {all} drifted pairs");
+    assert!(paper < vanilla, "usplat4d (paper) {paper:.4} vs vanilla {vanilla:.4}");
+    assert!(
+        psnr[2] > psnr[1],
+        "far views: usplat4d (paper) {:.2} vs vanilla {:.2}",
+        psnr[2],
+        psnr[1]
+    );
 }

@@ -208,10 +208,7 @@ mod tests {
         let mut e = Edges::default();
         for (s, d) in [(0, 1), (1, 2), (2, 0), (5, 0), (6, 1)] {
             let kind = if s < 3 { EdgeKind::KeyKey } else { EdgeKind::NonkeyKey };
-            e.src.push(s);
-            e.dst.push(d);
-            e.kind.push(kind);
-            e.weight.push(1.0);
+            e.push(s, d, kind, 1.0);
         }
         let path = dir.path().join(crate::tables::edges::EdgesTable::file_name());
         crate::tables::edges::write(&path, &e, &crate::tables::Provenance::default()).unwrap();

@@ -3,7 +3,8 @@
 //!
 //! One row group. Rows are the key-key edges (grouped by source key, neighbours nearest
 //! first) followed by the nonkey-key edges (grouped by source non-key). Weights are
-//! normalised per source: the edges leaving one Gaussian sum to 1.
+//! normalised per source: the edges leaving one Gaussian sum to 1. A graph trained by
+//! `optimize` also carries each key-key edge's learned canonical length.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -11,7 +12,7 @@ use std::sync::Arc;
 use arrow::array::{ArrayRef, Float32Array, StringArray, UInt32Array};
 use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
 
-use super::io::{Columns, Table, TableReader, batch, field, write_table};
+use super::io::{Columns, Table, TableReader, batch, field, nullable, write_table};
 use super::{Error, Provenance, Result, validate};
 
 /// Marker type of the `edges` table.
@@ -19,13 +20,15 @@ pub struct EdgesTable;
 
 impl Table for EdgesTable {
     const NAME: &'static str = "edges";
-    const VERSION: u32 = 1;
+    /// 2: `rest_length`, the learned canonical lengths of a trained graph.
+    const VERSION: u32 = 2;
     fn schema() -> SchemaRef {
         Arc::new(Schema::new(vec![
             field("src", DataType::UInt32),
             field("dst", DataType::UInt32),
             field("kind", DataType::Utf8),
             field("weight", DataType::Float32),
+            nullable("rest_length", DataType::Float32),
         ]))
     }
 }
@@ -69,6 +72,9 @@ pub struct Edges {
     pub kind: Vec<EdgeKind>,
     /// Weight in [0, 1]; the weights leaving one source sum to 1.
     pub weight: Vec<f32>,
+    /// Learned canonical length D_ij of a trained key-key edge (world units); `None` for
+    /// the `edges` stage's graph and for nonkey-key edges.
+    pub rest_length: Vec<Option<f32>>,
 }
 
 impl Edges {
@@ -82,12 +88,25 @@ impl Edges {
         self.src.is_empty()
     }
 
-    /// Append one edge.
+    /// Append one edge (no learned length).
     pub fn push(&mut self, src: u32, dst: u32, kind: EdgeKind, weight: f32) {
+        self.push_trained(src, dst, kind, weight, None);
+    }
+
+    /// Append one edge with its learned canonical length.
+    pub fn push_trained(
+        &mut self,
+        src: u32,
+        dst: u32,
+        kind: EdgeKind,
+        weight: f32,
+        rest_length: Option<f32>,
+    ) {
         self.src.push(src);
         self.dst.push(dst);
         self.kind.push(kind);
         self.weight.push(weight);
+        self.rest_length.push(rest_length);
     }
 }
 
@@ -98,11 +117,13 @@ pub fn write(path: &Path, e: &Edges, provenance: &Provenance) -> Result<()> {
         Arc::new(UInt32Array::from(e.dst.clone())),
         Arc::new(StringArray::from_iter_values(e.kind.iter().map(|k| k.as_str()))),
         Arc::new(Float32Array::from(e.weight.clone())),
+        Arc::new(Float32Array::from(e.rest_length.clone())),
     ];
     write_table::<EdgesTable>(path, provenance, [batch::<EdgesTable>(cols)])
 }
 
-/// Read and validate `path`: known kinds, no self-loops, weights finite in [0, 1].
+/// Read and validate `path`: known kinds, no self-loops, weights finite in [0, 1], learned
+/// lengths finite and non-negative.
 pub fn read(path: &Path) -> Result<Edges> {
     let reader = TableReader::open::<EdgesTable>(path)?;
     let b = reader.read_all()?;
@@ -128,7 +149,15 @@ pub fn read(path: &Path) -> Result<Edges> {
     if let Some(i) = (0..src.len()).find(|&i| src[i] == dst[i]) {
         return Err(value_err("dst", i, format!("self-loop on Gaussian {}", src[i])));
     }
-    Ok(Edges { src: src.to_vec(), dst: dst.to_vec(), kind, weight: weight.to_vec() })
+    let rest_length = c.opt_values::<Float32Type>("rest_length")?;
+    if let Some((i, d)) = rest_length
+        .iter()
+        .enumerate()
+        .find_map(|(i, d)| d.filter(|d| !(d.is_finite() && *d >= 0.0)).map(|d| (i, d)))
+    {
+        return Err(value_err("rest_length", i, format!("{d} is not a finite length >= 0")));
+    }
+    Ok(Edges { src: src.to_vec(), dst: dst.to_vec(), kind, weight: weight.to_vec(), rest_length })
 }
 
 #[cfg(test)]
@@ -142,7 +171,7 @@ mod tests {
         let mut e = Edges::default();
         e.push(1, 2, EdgeKind::KeyKey, 1.0);
         e.push(2, 1, EdgeKind::KeyKey, 1.0);
-        e.push(5, 1, EdgeKind::NonkeyKey, 0.25);
+        e.push_trained(5, 1, EdgeKind::NonkeyKey, 0.25, Some(0.5));
         e.push(5, 2, EdgeKind::NonkeyKey, 0.75);
         write(&path, &e, &Provenance::default()).unwrap();
         assert_eq!(read(&path).unwrap(), e);

@@ -23,6 +23,7 @@
 use std::collections::HashMap;
 
 use glam::DMat3;
+use rayon::prelude::*;
 
 use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
 use super::poses::{PoseGrads, Poses};
@@ -392,15 +393,18 @@ impl GraphObjective {
         w
     }
 
-    /// The learned graph as an edges table (key-key: current w_ij; nonkey-key: the fixed
-    /// normalised weights) and the key-key rest lengths D_ij `[E_key]`.
-    pub fn learned_edges(&self) -> (Edges, Vec<f32>) {
+    /// The learned graph as an edges table: key-key edges with the current w_ij and learned
+    /// canonical length D_ij (release form; the paper form's fixed lengths are not learned
+    /// and left out), nonkey-key edges with their fixed normalised weights.
+    pub fn learned_edges(&self) -> Edges {
         let mut out = Edges::default();
         let w = self.key_weights();
         let id = |pose: u32| self.ids[pose as usize];
+        let learned = self.s.motion == MotionForm::Release;
         for e in 0..self.ksrc.len() {
             let (a, b) = (self.keys[self.ksrc[e] as usize], self.keys[self.kdst[e] as usize]);
-            out.push(id(a), id(b), EdgeKind::KeyKey, w[e] as f32);
+            let d = learned.then_some(self.rest[e]);
+            out.push_trained(id(a), id(b), EdgeKind::KeyKey, w[e] as f32, d);
         }
         for (u, &nk) in self.nonkeys.iter().enumerate() {
             for e in self.nk_off[u]..self.nk_off[u + 1] {
@@ -408,7 +412,34 @@ impl GraphObjective {
                 out.push(id(nk), id(key), EdgeKind::NonkeyKey, self.nk_w[e] as f32);
             }
         }
-        (out, self.rest.clone())
+        out
+    }
+
+    /// Take over the trained tensors of `old` (the objective before a density pass): the
+    /// key-key rest lengths by (source, destination) id, and each non-key's source pose by
+    /// its id, or, for a Gaussian that density control created, by the id of the input
+    /// Gaussian it descends from (`origin`; the release's `densify_params` copies the
+    /// parent's). The
+    /// key-key weights come in through the learned edges the objective was built from.
+    pub fn carry_over(&mut self, old: &GraphObjective, origin: impl Fn(u32) -> u32) {
+        let key_id = |o: &GraphObjective, k: u32| o.ids[o.keys[k as usize] as usize];
+        let rest: HashMap<(u32, u32), f32> = (0..old.ksrc.len())
+            .map(|e| ((key_id(old, old.ksrc[e]), key_id(old, old.kdst[e])), old.rest[e]))
+            .collect();
+        for e in 0..self.ksrc.len() {
+            let pair = (key_id(self, self.ksrc[e]), key_id(self, self.kdst[e]));
+            if let Some(&d) = rest.get(&pair) {
+                self.rest[e] = d;
+            }
+        }
+        let src: HashMap<u32, usize> =
+            old.nonkeys.iter().enumerate().map(|(u, &i)| (old.ids[i as usize], u)).collect();
+        for (u, &i) in self.nonkeys.iter().enumerate() {
+            let id = self.ids[i as usize];
+            let Some(&v) = src.get(&id).or_else(|| src.get(&origin(id))) else { continue };
+            self.src_p[3 * u..3 * u + 3].copy_from_slice(&old.src_p[3 * v..3 * v + 3]);
+            self.src_q[4 * u..4 * u + 4].copy_from_slice(&old.src_q[4 * v..4 * v + 4]);
+        }
     }
 
     /// The metric of frame t, Gaussian i: per-axis factors in the camera frame (already
@@ -437,34 +468,45 @@ impl GraphObjective {
     }
 
     /// Anchor Σ_t Σ_i ‖p_{i,t} − p°_{i,t}‖ over `nodes`, all frames; adds `weight ·` gradient.
+    /// Parallel over frames (each writes its own gradient row), sums reduced in frame order.
     fn anchor(&self, poses: &Poses, nodes: &[u32], weight: f64, grads: &mut PoseGrads) -> f64 {
-        if weight == 0.0 {
+        if weight == 0.0 || nodes.is_empty() {
             return 0.0;
         }
-        let (mut sum, mut count) = (0.0, 0usize);
-        let mut gs: Vec<(usize, V3)> = Vec::new();
-        for t in 0..self.frames {
-            for &i in nodes {
-                let i = i as usize;
-                let Some(k) = self.metric(t, i) else { continue };
-                let o = t * self.n + i;
-                let x = [0, 1, 2].map(|c| (poses.position[o][c] - self.p0[o][c]) as f64);
-                let (d, g) = self.distance(t, k, x);
-                sum += d;
-                count += 1;
-                gs.push((o, g));
-            }
-        }
+        let n = self.n;
         let norm = match self.s.reduction {
             Reduction::Sum => 1.0,
-            Reduction::Mean => 1.0 / count.max(1) as f64,
-        };
-        for (o, g) in gs {
-            for c in 0..3 {
-                grads.position[o][c] += (weight * norm * g[c]) as f32;
+            Reduction::Mean => {
+                let count: usize = (0..self.frames)
+                    .into_par_iter()
+                    .map(|t| {
+                        nodes.iter().filter(|&&i| self.metric(t, i as usize).is_some()).count()
+                    })
+                    .sum();
+                1.0 / count.max(1) as f64
             }
-        }
-        sum * norm
+        };
+        let sums: Vec<f64> = grads
+            .position
+            .par_chunks_mut(n)
+            .enumerate()
+            .map(|(t, row)| {
+                let mut sum = 0.0;
+                for &i in nodes {
+                    let i = i as usize;
+                    let Some(k) = self.metric(t, i) else { continue };
+                    let o = t * n + i;
+                    let x = [0, 1, 2].map(|c| (poses.position[o][c] - self.p0[o][c]) as f64);
+                    let (d, g) = self.distance(t, k, x);
+                    sum += d;
+                    for c in 0..3 {
+                        row[i][c] += (weight * norm * g[c]) as f32;
+                    }
+                }
+                sum
+            })
+            .collect();
+        sums.iter().sum::<f64>() * norm
     }
 
     /// Evaluate every term on `poses` (DQB terms on the batch `frames`), add the gradients
@@ -493,14 +535,23 @@ impl GraphObjective {
         out.push(("nonkey_dqb_rotation", s.dqb_rotation * dq));
         out.extend(self.key_motion(poses, rng_seed, grads));
         // Smoothness over keys and non-keys.
-        let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
-        let track = Track::gather(poses, &all);
-        let mut tg = TrackGrad::zeros(&track);
+        let [vel, acc] = self.smoothness(poses, grads);
         let [lv, la] = s.lambda_vel_acc;
-        out.push(("velocity", lv * motion::velocity(&track, s.motion, lv, &mut tg)));
-        out.push(("acceleration", la * motion::acceleration(&track, s.motion, la, &mut tg)));
-        tg.scatter(&track, &all, grads);
+        out.push(("velocity", lv * vel));
+        out.push(("acceleration", la * acc));
         out
+    }
+
+    /// Velocity and acceleration (unweighted) over keys and non-keys, streamed by frame
+    /// blocks; adds the λ-weighted gradients.
+    fn smoothness(&self, poses: &Poses, grads: &mut PoseGrads) -> [f64; 2] {
+        let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
+        let [lv, la] = self.s.lambda_vel_acc;
+        let form = self.s.motion;
+        let (nv, na) = motion::smoothness_norms(form, self.frames, all.len());
+        motion::stream_frames(poses, &all, 2, grads, |tr, g| {
+            [motion::velocity(tr, form, nv, lv, g), motion::acceleration(tr, form, na, la, g)]
+        })
     }
 
     /// Key edge terms; returns their weighted contributions.
@@ -584,7 +635,7 @@ impl GraphObjective {
                 }
             }
         }
-        tg.scatter(&track, &self.keys, grads);
+        tg.scatter(&track, &self.keys, self.n, grads);
         // Chain the per-edge gradients to W (row L1 normalisation) and D.
         let mut g_w = vec![0.0f64; self.ksrc.len()];
         for (k, &e) in kept.iter().enumerate() {
@@ -612,32 +663,111 @@ impl GraphObjective {
         out
     }
 
-    /// The DQB position and rotation terms over non-keys and the batch frames.
+    /// The DQB position and rotation terms over non-keys and the batch frames. Parallel over
+    /// fixed chunks of non-keys (in waves, so memory stays O(chunk)); each chunk returns its
+    /// gradients and they are added in chunk order, so the result does not depend on the
+    /// number of threads.
     fn dqb_terms(&mut self, poses: &Poses, frames: &[usize], grads: &mut PoseGrads) -> (f64, f64) {
-        let s = self.s.clone();
+        const CHUNK: usize = 256;
+        const WAVE: usize = 16;
+        let s = &self.s;
         if (s.dqb == 0.0 && s.dqb_rotation == 0.0) || self.nonkeys.is_empty() {
             return (0.0, 0.0);
         }
         let nk = self.keys.len();
         // Unit dual quaternions of the keys' poses at every frame `[T, K]`.
-        let mut dq_key: Vec<(Dq, f64)> = Vec::with_capacity(self.frames * nk);
-        for t in 0..self.frames {
-            for &k in &self.keys {
-                let o = t * self.n + k as usize;
-                dq_key.push(dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o])));
-            }
-        }
-        let mut g_dq = vec![[0.0f64; 8]; self.frames * nk];
-        let (mut sum_p, mut sum_q) = (0.0, 0.0);
+        let dq_key: Vec<(Dq, f64)> = (0..self.frames * nk)
+            .into_par_iter()
+            .map(|x| {
+                let o = (x / nk) * self.n + self.keys[x % nk] as usize;
+                dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o]))
+            })
+            .collect();
         let linked = (0..self.nonkeys.len()).filter(|&u| self.nk_off[u + 1] > self.nk_off[u]);
         let norm = match s.reduction {
             Reduction::Sum => 1.0,
             Reduction::Mean => 1.0 / (linked.count() * frames.len()).max(1) as f64,
         };
+        let mut g_dq = vec![[0.0f64; 8]; self.frames * nk];
+        let (mut sum_p, mut sum_q) = (0.0, 0.0);
+        let chunks: Vec<std::ops::Range<usize>> = (0..self.nonkeys.len())
+            .step_by(CHUNK)
+            .map(|a| a..(a + CHUNK).min(self.nonkeys.len()))
+            .collect();
+        for wave in chunks.chunks(WAVE) {
+            let parts: Vec<DqbPart> = wave
+                .par_iter()
+                .map(|r| self.dqb_chunk(poses, frames, &dq_key, norm, r.clone()))
+                .collect();
+            for (r, part) in wave.iter().zip(parts) {
+                sum_p += part.sum_p;
+                sum_q += part.sum_q;
+                for (o, gp, gq) in part.poses {
+                    for c in 0..3 {
+                        grads.position[o][c] += gp[c] as f32;
+                    }
+                    for c in 0..4 {
+                        grads.rotation[o][c] += gq[c] as f32;
+                    }
+                }
+                self.g_src_p[3 * r.start..3 * r.end].copy_from_slice(&part.src_p);
+                self.g_src_q[4 * r.start..4 * r.end].copy_from_slice(&part.src_q);
+                for (x, g) in part.dq {
+                    for c in 0..8 {
+                        g_dq[x][c] += g[c];
+                    }
+                }
+            }
+        }
+        let key_grads: Vec<Option<([f64; 4], [f64; 3])>> = (0..self.frames * nk)
+            .into_par_iter()
+            .map(|x| {
+                let g = &g_dq[x];
+                if g.iter().all(|v| *v == 0.0) {
+                    return None;
+                }
+                let o = (x / nk) * self.n + self.keys[x % nk] as usize;
+                let (d, qn) = &dq_key[x];
+                Some(dqb::from_pose_vjp(d, *qn, q4::v64(poses.position[o]), g))
+            })
+            .collect();
+        for (x, kg) in key_grads.into_iter().enumerate() {
+            let Some((gq, gp)) = kg else { continue };
+            let o = (x / nk) * self.n + self.keys[x % nk] as usize;
+            for c in 0..3 {
+                grads.position[o][c] += gp[c] as f32;
+            }
+            for c in 0..4 {
+                grads.rotation[o][c] += gq[c] as f32;
+            }
+        }
+        (sum_p * norm, sum_q * norm)
+    }
+
+    /// The DQB terms of the non-keys `range` at the batch `frames` (see [`Self::dqb_terms`]).
+    fn dqb_chunk(
+        &self,
+        poses: &Poses,
+        frames: &[usize],
+        dq_key: &[(Dq, f64)],
+        norm: f64,
+        range: std::ops::Range<usize>,
+    ) -> DqbPart {
+        let s = &self.s;
+        let nk = self.keys.len();
         let (wp, wq) = (s.dqb * norm, s.dqb_rotation * norm);
+        let mut part = DqbPart {
+            sum_p: 0.0,
+            sum_q: 0.0,
+            poses: Vec::new(),
+            src_p: vec![0.0; 3 * range.len()],
+            src_q: vec![0.0; 4 * range.len()],
+            dq: Vec::new(),
+        };
         let mut rel: Vec<Dq> = Vec::new();
         let mut signs: Vec<f64> = Vec::new();
-        for (u, &node) in self.nonkeys.iter().enumerate() {
+        for (lu, u) in range.enumerate() {
+            let node = self.nonkeys[u];
             let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
             if a == b {
                 continue;
@@ -663,33 +793,30 @@ impl GraphObjective {
                     _ => self.metric(t, node as usize),
                 };
                 let (mut g_p, mut g_q) = ([0.0; 3], [0.0; 4]);
+                let (mut gp_own, mut gq_own) = ([0.0; 3], [0.0; 4]);
                 if let Some(k) = k {
                     let (d, g) = self.distance(t, k, x);
-                    sum_p += d;
+                    part.sum_p += d;
                     g_p = g.map(|v| -wp * v);
-                    for c in 0..3 {
-                        grads.position[o][c] += (wp * g[c]) as f32;
-                    }
+                    gp_own = g.map(|v| wp * v);
                 }
                 if s.dqb_rotation != 0.0 {
                     let (qu, qn) = q4::normalize(q4::q64(poses.rotation[o]));
                     let r = [0, 1, 2, 3].map(|c| out.q[c] - qu[c]);
                     let len = q4::norm(r);
-                    sum_q += len;
+                    part.sum_q += len;
                     if len > 0.0 {
                         g_q = r.map(|v| wq * v / len);
-                        let gu = q4::normalize_vjp(qu, qn, g_q.map(|v| -v));
-                        for c in 0..4 {
-                            grads.rotation[o][c] += gu[c] as f32;
-                        }
+                        gq_own = q4::normalize_vjp(qu, qn, g_q.map(|v| -v));
                     }
                 }
+                part.poses.push((o, gp_own, gq_own));
                 let wg = dqb::warp_vjp(&rel, w, sp, sq, g_p, g_q);
                 for c in 0..3 {
-                    self.g_src_p[3 * u + c] += wg.src_p[c] as f32;
+                    part.src_p[3 * lu + c] += wg.src_p[c] as f32;
                 }
                 for c in 0..4 {
-                    self.g_src_q[4 * u + c] += wg.src_q[c] as f32;
+                    part.src_q[4 * lu + c] += wg.src_q[c] as f32;
                 }
                 for (j, e) in (a..b).enumerate() {
                     let k = self.nk_key[e] as usize;
@@ -700,32 +827,26 @@ impl GraphObjective {
                         signs[j],
                         &g_rel,
                     );
-                    for c in 0..8 {
-                        g_dq[t * nk + k][c] += gd[c];
-                        g_dq[th * nk + k][c] += gs[c];
-                    }
+                    part.dq.push((t * nk + k, gd));
+                    part.dq.push((th * nk + k, gs));
                 }
             }
         }
-        for t in 0..self.frames {
-            for (kk, &k) in self.keys.iter().enumerate() {
-                let g = &g_dq[t * nk + kk];
-                if g.iter().all(|v| *v == 0.0) {
-                    continue;
-                }
-                let o = t * self.n + k as usize;
-                let (d, qn) = &dq_key[t * nk + kk];
-                let (gq, gp) = dqb::from_pose_vjp(d, *qn, q4::v64(poses.position[o]), g);
-                for c in 0..3 {
-                    grads.position[o][c] += gp[c] as f32;
-                }
-                for c in 0..4 {
-                    grads.rotation[o][c] += gq[c] as f32;
-                }
-            }
-        }
-        (sum_p * norm, sum_q * norm)
+        part
     }
+}
+
+/// One chunk's share of [`GraphObjective::dqb_terms`].
+struct DqbPart {
+    sum_p: f64,
+    sum_q: f64,
+    /// (pose index, d/d position, d/d raw rotation) of the chunk's non-keys.
+    poses: Vec<(usize, [f64; 3], [f64; 4])>,
+    /// Gradients of the chunk's source poses.
+    src_p: Vec<f32>,
+    src_q: Vec<f32>,
+    /// (t·K + key, d/d unit dual quaternion) contributions.
+    dq: Vec<(usize, [f64; 8])>,
 }
 
 #[cfg(test)]
@@ -941,11 +1062,7 @@ mod tests {
             };
             let all: Vec<u32> = keys.iter().chain(&nonkeys).copied().collect();
             let smooth = part(&mut || {
-                let tr = Track::gather(&p0, &all);
-                let mut tg = TrackGrad::zeros(&tr);
-                motion::velocity(&tr, obj.s.motion, 1.0, &mut tg);
-                motion::acceleration(&tr, obj.s.motion, 1.0, &mut tg);
-                tg.scatter(&tr, &all, &mut g);
+                obj.smoothness(&p0, &mut g);
             });
             let dqb_ms = part(&mut || {
                 obj.dqb_terms(&p0, &frames, &mut g);
@@ -967,10 +1084,27 @@ mod tests {
     }
 
     #[test]
+    fn a_rebuilt_objective_keeps_the_trained_lengths_and_source_poses() {
+        let (mut old, _) = case(GraphSettings::defaults(Profile::Release));
+        old.rest.iter_mut().enumerate().for_each(|(e, d)| *d = 10.0 + e as f32);
+        old.src_p.iter_mut().enumerate().for_each(|(k, x)| *x = -1.0 - k as f32);
+        old.src_q.iter_mut().for_each(|x| *x = 0.5);
+        let (mut new, _) = case(GraphSettings::defaults(Profile::Release));
+        // the new objective's last non-key is Gaussian 200, created from 101
+        new.ids[6] = 200;
+        new.carry_over(&old, |id| if id == 200 { 101 } else { id });
+        assert_eq!(new.rest, old.rest);
+        assert_eq!(new.src_p[..9], old.src_p[..9], "non-keys 101, 103, 105 keep theirs");
+        assert_eq!(new.src_p[9..], old.src_p[..3], "200 takes its origin's");
+        assert!(new.src_q.iter().all(|&x| x == 0.5));
+    }
+
+    #[test]
     fn learned_edges_are_normalised_per_source() {
         let (obj, _) = case(GraphSettings::defaults(Profile::Release));
-        let (edges, rest) = obj.learned_edges();
-        assert_eq!(rest.len(), 6);
+        let edges = obj.learned_edges();
+        let rest: Vec<f32> = edges.rest_length.iter().flatten().copied().collect();
+        assert_eq!(rest, obj.rest, "the key-key edges carry their learned lengths");
         let kk: f32 = (0..edges.len())
             .filter(|&e| edges.kind[e] == EdgeKind::KeyKey && edges.src[e] == 100)
             .map(|e| edges.weight[e])

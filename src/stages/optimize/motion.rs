@@ -30,11 +30,17 @@ use crate::math::quat64::{self as q4, M3, Q, V3};
 /// Width of one gradient row: position (3), raw quaternion (4), unit quaternion (4).
 const GW: usize = 11;
 
-/// The poses of `m` Gaussians over T frames in f64, frame-major (`t * m + k`).
+/// The poses of `m` Gaussians over a run of frames in f64, frame-major (`t * m + k`).
+/// Terms are evaluated at the local frames `first..frames`; the frames before `first` are
+/// context (read by terms that couple t−Δ..t, never a term's own t).
 #[derive(Debug, Clone)]
 pub struct Track {
-    /// T.
+    /// Number of frames held.
     pub frames: usize,
+    /// Global frame of local frame 0.
+    pub start: usize,
+    /// First local frame at which terms are evaluated.
+    pub first: usize,
     /// m, the number of Gaussians gathered.
     pub m: usize,
     /// `[T, m, 3]` positions.
@@ -53,22 +59,32 @@ impl Track {
         assert_eq!(p.len(), frames * m, "positions [T, m]");
         assert_eq!(q.len(), frames * m, "rotations [T, m]");
         let (u, qn) = q.iter().map(|&x| q4::normalize(x)).unzip();
-        Track { frames, m, p, q, u, qn }
+        Track { frames, start: 0, first: 0, m, p, q, u, qn }
     }
 
     /// Gather the Gaussians `nodes` (indices into `poses`, `[m]`) from every frame.
     pub fn gather(poses: &Poses, nodes: &[u32]) -> Self {
-        let (t, m) = (poses.frames, nodes.len());
+        Self::gather_frames(poses, nodes, 0..poses.frames, 0)
+    }
+
+    /// Gather `nodes` at the global `frames`; terms start at local frame `first`.
+    pub fn gather_frames(
+        poses: &Poses,
+        nodes: &[u32],
+        frames: std::ops::Range<usize>,
+        first: usize,
+    ) -> Self {
+        let (t, m) = (frames.len(), nodes.len());
         let mut p = Vec::with_capacity(t * m);
         let mut q = Vec::with_capacity(t * m);
-        for f in 0..t {
+        for f in frames.clone() {
             let base = f * poses.n;
             for &i in nodes {
                 p.push(q4::v64(poses.position[base + i as usize]));
                 q.push(q4::q64(poses.rotation[base + i as usize]));
             }
         }
-        Track::new(t, m, p, q)
+        Track { start: frames.start, first, ..Track::new(t, m, p, q) }
     }
 
     #[inline]
@@ -104,13 +120,13 @@ impl TrackGrad {
         [r[3] + gu[0], r[4] + gu[1], r[5] + gu[2], r[6] + gu[3]]
     }
 
-    /// Add the gradients into `grads` at the Gaussians `nodes` (`[m]`, as gathered).
-    pub fn scatter(&self, track: &Track, nodes: &[u32], grads: &mut PoseGrads) {
-        let n = grads.position.len() / track.frames.max(1);
+    /// Add the gradients into `grads` (`[T, n]`) at the Gaussians `nodes` (`[m]`, as
+    /// gathered) and the track's global frames.
+    pub fn scatter(&self, track: &Track, nodes: &[u32], n: usize, grads: &mut PoseGrads) {
         for t in 0..track.frames {
             for (k, &i) in nodes.iter().enumerate() {
                 let (gp, gq) = (self.position(t, k), self.rotation(track, t, k));
-                let o = t * n + i as usize;
+                let o = (track.start + t) * n + i as usize;
                 for c in 0..3 {
                     grads.position[o][c] += gp[c] as f32;
                 }
@@ -118,6 +134,80 @@ impl TrackGrad {
                     grads.rotation[o][c] += gq[c] as f32;
                 }
             }
+        }
+    }
+}
+
+/// Rows (Gaussian × frame) of one block of [`stream_frames`]: about 48 MB of track and
+/// gradients.
+const BLOCK_ROWS: usize = 1 << 18;
+
+/// Rows gathered by one wave of blocks evaluated in parallel.
+const WAVE_ROWS: usize = 1 << 20;
+
+/// Evaluate `f` (which returns K term values and adds its gradients into the [`TrackGrad`])
+/// on the Gaussians `nodes` of `poses`, one block of frames at a time: each block holds its
+/// frames plus `context` frames before them (terms coupling t−Δ..t need Δ ≤ `context`), and
+/// its gradients are added into `grads` in block order, as are the values. Memory is a few
+/// blocks, not `[T, m]`; the block layout depends on T and m only, so the result does not
+/// depend on the number of threads.
+pub fn stream_frames<const K: usize>(
+    poses: &Poses,
+    nodes: &[u32],
+    context: usize,
+    grads: &mut PoseGrads,
+    f: impl Fn(&Track, &mut TrackGrad) -> [f64; K] + Sync,
+) -> [f64; K] {
+    stream_frames_in(poses, nodes, context, BLOCK_ROWS, grads, f)
+}
+
+/// [`stream_frames`] with blocks of about `block_rows` rows (at least 4 frames).
+fn stream_frames_in<const K: usize>(
+    poses: &Poses,
+    nodes: &[u32],
+    context: usize,
+    block_rows: usize,
+    grads: &mut PoseGrads,
+    f: impl Fn(&Track, &mut TrackGrad) -> [f64; K] + Sync,
+) -> [f64; K] {
+    let (nt, m) = (poses.frames, nodes.len());
+    let mut total = [0.0; K];
+    if nt == 0 || m == 0 {
+        return total;
+    }
+    let b = (block_rows / m).max(4);
+    let blocks: Vec<std::ops::Range<usize>> =
+        (0..nt).step_by(b).map(|lo| lo..(lo + b).min(nt)).collect();
+    let wave = (WAVE_ROWS / ((b + context) * m)).clamp(1, 8);
+    for w in blocks.chunks(wave) {
+        let parts: Vec<(Track, TrackGrad, [f64; K])> = w
+            .par_iter()
+            .map(|r| {
+                let a = r.start.saturating_sub(context);
+                let tr = Track::gather_frames(poses, nodes, a..r.end, r.start - a);
+                let mut g = TrackGrad::zeros(&tr);
+                let v = f(&tr, &mut g);
+                (tr, g, v)
+            })
+            .collect();
+        for (tr, g, v) in parts {
+            g.scatter(&tr, nodes, poses.n, grads);
+            for (t, x) in total.iter_mut().zip(v) {
+                *t += x;
+            }
+        }
+    }
+    total
+}
+
+/// The norms of [`velocity`] and [`acceleration`] for `m` Gaussians over T `frames`:
+/// 1 for the paper's sums, the release's means.
+pub fn smoothness_norms(form: MotionForm, frames: usize, m: usize) -> (f64, f64) {
+    match form {
+        MotionForm::Paper => (1.0, 1.0),
+        MotionForm::Release => {
+            let per = |d: usize| 1.0 / (frames.saturating_sub(d) * m).max(1) as f64;
+            (per(1), per(2))
         }
     }
 }
@@ -283,7 +373,7 @@ pub fn rigidity(
     let m = track.m;
     let want_e = g_edges.is_some();
     let ne = edges.len();
-    let parts = frame_windows(g, track.frames, delta, 0, |ts, base, rows| {
+    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
         let mut part = Partial {
             value: 0.0,
             g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
@@ -354,7 +444,7 @@ pub fn relative_rotation(
     let m = track.m;
     let want_e = g_edges.is_some();
     let ne = edges.len();
-    let parts = frame_windows(g, track.frames, delta, 0, |ts, base, rows| {
+    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
         let mut part = Partial {
             value: 0.0,
             g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
@@ -417,7 +507,7 @@ pub fn isometry(
     let m = track.m;
     let want_e = g_edges.is_some();
     let ne = edges.len();
-    let parts = frame_windows(g, track.frames, 0, 0, |ts, base, rows| {
+    let parts = frame_windows(g, track.frames, 0, track.first, |ts, base, rows| {
         let mut part = Partial {
             value: 0.0,
             g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
@@ -473,16 +563,17 @@ fn rel_std(a: Q, b: Q) -> (Q, f64) {
     if r[0] < 0.0 { (r.map(|x| -x), -1.0) } else { (r, 1.0) }
 }
 
-/// Velocity over all Gaussians of the track; value unscaled, `scale ·` gradient added.
-/// Paper: `Σ_{t≥1} Σ_i ‖p_{t−1} − p_t‖₁ + ‖std(q_{t−1} q_t*) − 1‖₁`; release:
-/// `mean((p_t − p_{t+1})²) + mean((q_t − q_{t+1})²)`, means over (T−1)·m·3 and (T−1)·m·4.
-pub fn velocity(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGrad) -> f64 {
+/// Velocity over all Gaussians of the track: `norm ·` the sum below (unscaled), `scale ·`
+/// its gradient added. Paper: `Σ_{t≥1} Σ_i ‖p_{t−1} − p_t‖₁ + ‖std(q_{t−1} q_t*) − 1‖₁`
+/// (norm 1); release: `Σ ‖p_t − p_{t+1}‖²/3 + ‖q_t − q_{t+1}‖²/4`, whose mean over the
+/// components is norm = 1/((T−1)·m) ([`smoothness_norms`]).
+pub fn velocity(track: &Track, form: MotionForm, norm: f64, scale: f64, g: &mut TrackGrad) -> f64 {
     let (nt, m) = (track.frames, track.m);
     if nt < 2 || m == 0 {
         return 0.0;
     }
-    let cnt = ((nt - 1) * m) as f64;
-    let parts = frame_windows(g, nt, 1, 0, |ts, base, rows| {
+    let scale = scale * norm;
+    let parts = frame_windows(g, nt, 1, track.first, |ts, base, rows| {
         let mut v = 0.0;
         for t in ts {
             for k in 0..m {
@@ -507,7 +598,7 @@ pub fn velocity(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGrad) 
                     MotionForm::Release => {
                         let d = sub(track.p[i1], track.p[i0]);
                         let dq = [0, 1, 2, 3].map(|c| track.q[i1][c] - track.q[i0][c]);
-                        let (np, nq) = (cnt * 3.0, cnt * 4.0);
+                        let (np, nq) = (3.0, 4.0);
                         v += d.iter().map(|x| x * x).sum::<f64>() / np;
                         v += dq.iter().map(|x| x * x).sum::<f64>() / nq;
                         let gd = d.map(|x| scale * 2.0 * x / np);
@@ -522,20 +613,27 @@ pub fn velocity(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGrad) 
         }
         v
     });
-    parts.into_iter().sum()
+    norm * parts.into_iter().sum::<f64>()
 }
 
-/// Acceleration over all Gaussians of the track; value unscaled, `scale ·` gradient added.
-/// Paper: `Σ_{t≥2} Σ_i ‖p_{t−2} − 2p_{t−1} + p_t‖₁ + ‖std(r₁ r₂*) − 1‖₁` with
-/// r₁ = q_{t−2} q_{t−1}*, r₂ = q_{t−1} q_t*; release: `mean ‖2p_{t−1} − p_{t−2} − p_t‖ +
-/// mean ‖2q_{t−1} − q_{t−2} − q_t‖` over (T−2)·m (raw q).
-pub fn acceleration(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGrad) -> f64 {
+/// Acceleration over all Gaussians of the track: `norm ·` the sum below (unscaled),
+/// `scale ·` its gradient added. Paper: `Σ_{t≥2} Σ_i ‖p_{t−2} − 2p_{t−1} + p_t‖₁ +
+/// ‖std(r₁ r₂*) − 1‖₁` with r₁ = q_{t−2} q_{t−1}*, r₂ = q_{t−1} q_t* (norm 1); release:
+/// `Σ ‖2p_{t−1} − p_{t−2} − p_t‖ + ‖2q_{t−1} − q_{t−2} − q_t‖` (raw q), a mean with
+/// norm = 1/((T−2)·m).
+pub fn acceleration(
+    track: &Track,
+    form: MotionForm,
+    norm: f64,
+    scale: f64,
+    g: &mut TrackGrad,
+) -> f64 {
     let (nt, m) = (track.frames, track.m);
     if nt < 3 || m == 0 {
         return 0.0;
     }
-    let cnt = ((nt - 2) * m) as f64;
-    let parts = frame_windows(g, nt, 2, 0, |ts, base, rows| {
+    let scale = scale * norm;
+    let parts = frame_windows(g, nt, 2, track.first, |ts, base, rows| {
         let mut v = 0.0;
         for t in ts {
             for k in 0..m {
@@ -570,15 +668,15 @@ pub fn acceleration(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGr
                         let (q0, q1, q2) = (track.q[ix[0]], track.q[ix[1]], track.q[ix[2]]);
                         let dq = [0, 1, 2, 3].map(|c| q0[c] - 2.0 * q1[c] + q2[c]);
                         let (lp, lq) = (norm3(d), q4::norm(dq));
-                        v += (lp + lq) / cnt;
+                        v += lp + lq;
                         if lp > 0.0 {
-                            let gd = d.map(|x| scale * x / (lp * cnt));
+                            let gd = d.map(|x| scale * x / lp);
                             add_to(&mut rows[rw[0]], 0, &gd);
                             add_to(&mut rows[rw[1]], 0, &gd.map(|x| -2.0 * x));
                             add_to(&mut rows[rw[2]], 0, &gd);
                         }
                         if lq > 0.0 {
-                            let gq = dq.map(|x| scale * x / (lq * cnt));
+                            let gq = dq.map(|x| scale * x / lq);
                             add_to(&mut rows[rw[0]], 3, &gq);
                             add_to(&mut rows[rw[1]], 3, &gq.map(|x| -2.0 * x));
                             add_to(&mut rows[rw[2]], 3, &gq);
@@ -589,7 +687,7 @@ pub fn acceleration(track: &Track, form: MotionForm, scale: f64, g: &mut TrackGr
         }
         v
     });
-    parts.into_iter().sum()
+    norm * parts.into_iter().sum::<f64>()
 }
 
 /// The vanilla recipe's motion-locality graph: each of the `positions` `[m, 3]` (the dynamic
@@ -664,8 +762,8 @@ mod tests {
         v += relative_rotation(tr, e, 2, 0.5, 1.0, &mut g, Some(&mut ge));
         v += isometry(tr, e, rest, 0.4, 1.0, &mut g, Some(&mut ge));
         for form in [MotionForm::Paper, MotionForm::Release] {
-            v += velocity(tr, form, 1.0, &mut g);
-            v += acceleration(tr, form, 1.0, &mut g);
+            v += velocity(tr, form, 0.6, 1.0, &mut g);
+            v += acceleration(tr, form, 0.8, 1.0, &mut g);
         }
         (v, g, ge)
     }
@@ -719,6 +817,46 @@ mod tests {
         }
         eprintln!("motion terms: max |analytic − FD| = {worst:.2e}");
         assert!(fails.is_empty(), "{}", fails.join("\n"));
+    }
+
+    #[test]
+    fn streamed_frame_blocks_equal_the_whole_track() {
+        let (t, m) = (23, 6);
+        let (tr, src, dst, w, rest) = case(11, t, m);
+        let (n, nodes) = (9, [7u32, 0, 3, 8, 2, 5]);
+        let mut poses = Poses::identity(t, n);
+        for f in 0..t {
+            for (k, &i) in nodes.iter().enumerate() {
+                poses.position[f * n + i as usize] = tr.p[f * m + k].map(|x| x as f32);
+                poses.rotation[f * n + i as usize] = tr.q[f * m + k].map(|x| x as f32);
+            }
+        }
+        let e = EdgeSet { src: &src, dst: &dst, w: &w };
+        let terms = |tr: &Track, g: &mut TrackGrad| {
+            [
+                rigidity(tr, e, 1, 0.3, 1.0, g, None),
+                rigidity(tr, e, 3, 0.2, 0.7, g, None),
+                relative_rotation(tr, e, 2, 0.5, 1.0, g, None),
+                isometry(tr, e, &rest, 0.4, 1.0, g, None),
+                velocity(tr, MotionForm::Paper, 1.0, 1.0, g),
+                acceleration(tr, MotionForm::Release, 0.1, 1.0, g),
+            ]
+        };
+        let whole = Track::gather(&poses, &nodes);
+        let mut g = TrackGrad::zeros(&whole);
+        let want = terms(&whole, &mut g);
+        let mut want_g = PoseGrads::zeros(t, n);
+        g.scatter(&whole, &nodes, n, &mut want_g);
+        // blocks of 4 frames plus 3 frames of context
+        let mut got_g = PoseGrads::zeros(t, n);
+        let got = stream_frames_in(&poses, &nodes, 3, 4 * m, &mut got_g, terms);
+        for (a, b) in got.iter().zip(&want) {
+            assert!((a - b).abs() < 1e-9 * (1.0 + b.abs()), "{got:?} vs {want:?}");
+        }
+        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+        assert!(close(got_g.position.as_flattened(), want_g.position.as_flattened()));
+        assert!(close(got_g.rotation.as_flattened(), want_g.rotation.as_flattened()));
+        assert!(want_g.position[7][0] != 0.0, "gradients reach the poses");
     }
 
     #[test]

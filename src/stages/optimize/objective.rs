@@ -5,16 +5,16 @@
 //! - usplat4d: [`GraphObjective`] (L_key + L_non-key) on the graph of the trained Gaussians.
 //!   Its p° and u of a Gaussian are those of the input Gaussian it descends from
 //!   ([`TrainState::origin`]); a new Gaussian is a non-key with its origin's t̂ and edges.
-//!   At a density pass the objective is rebuilt with the learned key-key weights; the
-//!   non-keys' source poses and the learned rest lengths start again from their
-//!   initialisation (a simplification of the release's `densify_params`).
+//!   At a density pass the objective is rebuilt with the learned key-key weights and takes
+//!   over the learned rest lengths and the non-keys' trained source poses
+//!   ([`GraphObjective::carry_over`], the release's `densify_params`).
 
 use std::collections::HashMap;
 
 use glam::DMat3;
 
 use super::graph_loss::{GraphObjective, GraphSettings};
-use super::motion::{self, EdgeSet, MotionForm, Track, TrackGrad};
+use super::motion::{self, EdgeSet, MotionForm};
 use super::poses::{PoseGrads, Poses};
 use super::state::TrainState;
 use crate::tables::edges::{EdgeKind, Edges};
@@ -90,20 +90,23 @@ impl KnnMotion {
         if self.nodes.is_empty() {
             return Vec::new();
         }
-        let track = Track::gather(poses, &self.nodes);
-        let mut tg = TrackGrad::zeros(&track);
         let es = EdgeSet { src: &self.src, dst: &self.dst, w: &self.w };
         let norm = 1.0 / self.src.len().max(1) as f64;
-        let iso = motion::isometry(&track, es, &self.rest, norm, 1.0, &mut tg, None);
-        let rigid = motion::rigidity(&track, es, 1, norm, 1.0, &mut tg, None);
-        let vel = 0.01 * motion::velocity(&track, MotionForm::Paper, 0.01, &mut tg);
-        let acc = 0.01 * motion::acceleration(&track, MotionForm::Paper, 0.01, &mut tg);
-        tg.scatter(&track, &self.nodes, grads);
+        let paper = MotionForm::Paper;
+        let [iso, rigid, vel, acc] =
+            motion::stream_frames(poses, &self.nodes, 2, grads, |tr, g| {
+                [
+                    motion::isometry(tr, es, &self.rest, norm, 1.0, g, None),
+                    motion::rigidity(tr, es, 1, norm, 1.0, g, None),
+                    motion::velocity(tr, paper, 1.0, 0.01, g),
+                    motion::acceleration(tr, paper, 1.0, 0.01, g),
+                ]
+            });
         vec![
             ("knn_isometry", iso),
             ("knn_rigidity", rigid),
-            ("velocity", vel),
-            ("acceleration", acc),
+            ("velocity", 0.01 * vel),
+            ("acceleration", 0.01 * acc),
         ]
     }
 }

@@ -6,7 +6,7 @@
 
 use std::path::PathBuf;
 
-use super::graph_loss::{AnchorMetric, GraphSettings};
+use super::graph_loss::{AnchorMetric, GraphSettings, Reduction};
 use super::image_loss::ImageLossWeights;
 use crate::stages::params::Profile;
 
@@ -146,6 +146,11 @@ pub struct OptimizeParams {
     #[arg(long, value_enum, help_heading = "Graph")]
     #[serde(default)]
     pub anchor_metric: Option<AnchorMetric>,
+    /// Reduction of the anchor and DQB sums over (t, i) [paper sum (Σ_t Σ_i as Eqs. 9 and
+    /// 11 are written), release mean].
+    #[arg(long, value_enum, help_heading = "Graph")]
+    #[serde(default)]
+    pub graph_reduction: Option<Reduction>,
     /// Depth ratio r_z of U [paper 0.01, release 0.1; row 15].
     #[arg(long, help_heading = "Graph")]
     #[serde(default)]
@@ -346,6 +351,7 @@ impl OptimizeParams {
                 self.anchor_metric.unwrap_or(g.anchor_metric)
             },
             r_xyz: [g.r_xyz[0], g.r_xyz[1], f(self.r_z, g.r_xyz[2])],
+            reduction: self.graph_reduction.unwrap_or(g.reduction),
             key_anchor: f(self.key_anchor_weight, g.key_anchor),
             nonkey_anchor: f(self.nonkey_anchor_weight, g.nonkey_anchor),
             dqb: lg * g.dqb,

@@ -1,5 +1,5 @@
 //! One optimisation step's image part: for each batch frame, render the training view with
-//! the CPU [`DifferentiableRenderer`], take L_rgb against that frame's ground truth (paper
+//! the [`DifferentiableRenderer`] of `--device`, take L_rgb against that frame's ground truth (paper
 //! App. A.3: colour, mask, depth, and the 2D tracks to the next batch frame when the scene
 //! has them), run the backward pass and chain the Gaussians' gradients to the trained
 //! parameters (per-frame pose, log-scale, opacity logit, colour/SH). The batch's loss is the
@@ -17,8 +17,7 @@ use super::image_loss::track::{
 use super::image_loss::{FrameTargets, ImageLossWeights, TrackForm, TrackSet, rgb_loss};
 use super::state::{StateGrads, TrainState, sigmoid};
 use crate::render::{
-    ColorSource, CpuRenderer, Cutoff, DifferentiableRenderer, RenderCamera, RenderSettings,
-    ShFrame, SplatInputs,
+    ColorSource, Cutoff, DifferentiableRenderer, RenderCamera, RenderSettings, ShFrame, SplatInputs,
 };
 use crate::scene::{Camera, Scene};
 use crate::tables::tracks_2d::Tracks2dReader;
@@ -159,8 +158,10 @@ pub struct ImageStep {
     pub screen_count: Vec<u32>,
 }
 
-/// L_rgb and its gradients over the batch frames `batch` (frame indices, in order).
-pub fn image_step(
+/// L_rgb and its gradients over the batch frames `batch` (frame indices, in order), rendered
+/// by `renderer` (the CPU, or the GPU that `--device` names).
+pub fn image_step<R: DifferentiableRenderer>(
+    renderer: &R,
     state: &TrainState,
     views: &TrainingViews,
     batch: &[usize],
@@ -210,7 +211,7 @@ pub fn image_step(
             features: &features,
             num_features: nf,
         };
-        let (out, saved) = CpuRenderer
+        let (out, saved) = renderer
             .render_with_saved(&cam, &inputs, settings, Cutoff::Hard)
             .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
         let truth = views.truth(t, settings.background)?;
@@ -230,7 +231,7 @@ pub fn image_step(
                 None => terms.push((name, value / batch.len() as f64)),
             }
         }
-        let g = CpuRenderer
+        let g = renderer
             .backward(&cam, &inputs, settings, &saved, &v)
             .map_err(|e| anyhow::anyhow!("frame {t}: backward: {e}"))?;
         let (half_w, half_h) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);

@@ -314,13 +314,14 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         }
     }
     let render = RenderSettings::default();
+    let renderer = crate::stages::device::renderer(ctx)?;
     let bar = ctx.progress(s.steps as u64, "optimize");
     bar.set_position(c.step as u64);
     while c.step < s.steps {
         let step = c.step;
         let started = Instant::now();
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
-        let img = image_step(&c.state, &views, &batch, &s.image, &render)?;
+        let img = image_step(&renderer, &c.state, &views, &batch, &s.image, &render)?;
         let mut grads = img.grads;
         let mut terms: Vec<(String, f64)> = Vec::new();
         terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
@@ -364,10 +365,16 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
             tracing::info!(step, ?r, n = c.state.n(), "density control");
             c.density = DensityStats::new(c.state.n());
             let learned = match &objective {
-                Objective::Graph(o) => Some(o.learned_edges().0),
+                Objective::Graph(o) => Some(o.learned_edges()),
                 Objective::Knn(_) => None,
             };
-            objective = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
+            let mut rebuilt = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
+            if let (Objective::Graph(new), Objective::Graph(old)) = (&mut rebuilt, &objective) {
+                let origin: HashMap<u32, u32> =
+                    c.state.ids.iter().copied().zip(c.state.origin.iter().copied()).collect();
+                new.carry_over(old, |id| origin.get(&id).copied().unwrap_or(id));
+            }
+            objective = rebuilt;
             c.adam.groups.truncate(6);
             if let Objective::Graph(o) = &mut objective {
                 add_graph_groups(&mut c.adam, o, &s);
@@ -404,7 +411,7 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
     let learned = match &objective {
-        Objective::Graph(o) => Some(o.learned_edges().0),
+        Objective::Graph(o) => Some(o.learned_edges()),
         Objective::Knn(_) => None,
     };
     write_outputs(p, &s, &c, graph.as_ref().zip(learned.as_ref()))?;

@@ -233,6 +233,7 @@ mod tests {
             dst: vec![11, 10, 21, 20],
             kind: vec![EdgeKind::KeyKey; 4],
             weight: vec![1.0; 4],
+            rest_length: vec![None; 4],
         };
         let segments =
             Segments { id: vec![10, 11, 20, 21], segment: vec![1, 1, 0, 0], is_key: vec![true; 4] };

@@ -3,7 +3,8 @@
 //! by `synth --width 256 --height 256 --gaussians 20000`). Runs the real stage into a
 //! temporary directory without checkpoints or density control and reads the per-step wall
 //! times from its training log; the first step (warm-up) is left out of the mean. Peak memory
-//! is the process's VmHWM.
+//! is the process's VmHWM. The global `--device` picks the renderer (`--device gpu` times the
+//! GPU renderer, software adapters included).
 
 use std::path::PathBuf;
 
@@ -81,6 +82,7 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         key_anchor_weight: None,
         nonkey_anchor_weight: None,
         anchor_metric: None,
+        graph_reduction: None,
         r_z: None,
         lambda_vel: None,
         lambda_acc: None,
@@ -100,10 +102,11 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     let ms = 1e3 * timed.iter().sum::<f64>() / timed.len().max(1) as f64;
     let model = crate::model::Model::load(&out)?;
     let rss = crate::tools::bench::graph::peak_rss_bytes().map_or(f64::NAN, |b| b as f64 / 1e9);
-    println!("| recipe | profile | N | T | batch | ms/step | peak RSS GB | threads |");
-    println!("|---|---|---|---|---|---|---|---|");
+    let device = crate::stages::device::renderer(ctx)?.tag();
+    println!("| recipe | profile | N | T | batch | device | ms/step | peak RSS GB | threads |");
+    println!("|---|---|---|---|---|---|---|---|---|");
     println!(
-        "| {:?} | {:?} | {} | {} | {} | {ms:.0} | {rss:.2} | {} |",
+        "| {:?} | {:?} | {} | {} | {} | {device} | {ms:.0} | {rss:.2} | {} |",
         p.recipe,
         p.profile,
         model.gaussians.len(),
