@@ -28,7 +28,7 @@ fn extreme_view_pipeline_writes_the_paper_tables_for_four_models() {
     let sets =
         ["frames=6", "size=48", "gaussians=1000", "init_gaussians=500", "base_steps=6", "steps=3"];
     let out = run(&d, "extreme-view.yaml", &sets);
-    assert!(out.contains("157 stages: 157 run"), "{out}");
+    assert!(out.contains("165 stages: 165 run"), "{out}");
     let md = std::fs::read_to_string(d.join("out/extreme-view/benchmark/benchmark.md")).unwrap();
     for model in ["Fox", "CesiumMan", "RiggedFigure", "RiggedSimple"] {
         assert!(md.contains(&format!("usplat4d-release on {model} (Δ against vanilla)")), "{md}");
@@ -47,7 +47,7 @@ fn extreme_view_pipeline_writes_the_paper_tables_for_four_models() {
     assert!(d.join("out/extreme-view/benchmark/benchmark.parquet").exists());
     // a second run has nothing to do
     let again = run(&d, "extreme-view.yaml", &sets);
-    assert!(again.contains("all 157 stages up to date"), "{again}");
+    assert!(again.contains("all 165 stages up to date"), "{again}");
 }
 
 #[test]
