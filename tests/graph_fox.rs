@@ -122,7 +122,10 @@ fn key_nodes_cover_the_fox() {
     let voxel = bbox_diagonal(&p0) / 10.0;
     for profile in ["paper", "release"] {
         let u = format!("U_{profile}");
-        let common = ["--model", "S/oracle", "--profile", profile];
+        // The literal covered-pixel set (τ = 0), on which this test's coverage margins were
+        // set (issue 5); `covered_pixel_floor_is_measured` prints the coverage at every τ,
+        // the paper default's included.
+        let common = ["--model", "S/oracle", "--profile", profile, "--cover-min-weight", "0"];
         dir.ok(&[&["uncertainty"], &common[..], &["--scene", "S", "--out", &u]].concat());
     }
     let runs: [(&str, &str, &[&str]); 4] = [
@@ -339,8 +342,8 @@ fn drifting_prior_raises_uncertainty() {
 /// frame) pairs marked unreliable on the oracle (a perfect model: ideally none), and on the
 /// drifted prior the unconverged rate of drifted and untouched seen pairs and the flips
 /// from converged on the oracle. The paper profile's default must keep the oracle's
-/// unreliable fraction at most 15% (literal reading: 42% on the default Fox) while still
-/// separating the drifted pairs.
+/// unreliable fraction at most 10% (literal reading τ = 0: 60% here, 42% on the default
+/// 512² Fox) while still separating the drifted pairs.
 #[test]
 fn covered_pixel_floor_is_measured() {
     let dir = Dir::new();
@@ -358,6 +361,8 @@ fn covered_pixel_floor_is_measured() {
     let (window, drifted, _) = drifted_model(&dir, &oracle, &u0);
     let (drift_seen, clean_seen) = seen_pairs(&u0, &window, &drifted);
     let n = oracle.gaussians.len();
+    let p0 = oracle.frame(0).unwrap().position;
+    let voxel = bbox_diagonal(&p0) / 10.0;
     let all_seen: Vec<(usize, usize)> = (0..n)
         .flat_map(|i| (0..u0.len()).map(move |t| (i, t)))
         .filter(|&(i, t)| u0[t].n_pixels[i] > 0)
@@ -378,15 +383,27 @@ fn covered_pixel_floor_is_measured() {
         let (rate_c, _) = pair_stats(&ud, &clean_seen);
         let (rate_d0, _) = pair_stats(&uo, &drift_seen);
         let (flip_d, flip_c) = (flip_rate(&uo, &ud, &drift_seen), flip_rate(&uo, &ud, &clean_seen));
+        // key-node coverage of the paper's keys (voxel grid and ablation (d)) on the oracle
+        let cover = |extra: &[&str], k: &str| {
+            let args = ["keynodes", "--model", "S/oracle", "--uncertainty"];
+            dir.ok(&[&args[..], &[&format!("Uo_{name}"), "--out", k], extra].concat());
+            let keys = key_nodes::read(&dir.join(k).join("key_nodes.parquet")).unwrap();
+            key_coverage(&p0, &key_mask(&oracle, &keys), voxel)
+        };
+        let cov = cover(&[], &format!("K_{name}"));
+        let cov_d = cover(&["--candidate-sampling", "random"], &format!("Kd_{name}"));
         println!(
             "  τ {name:>7}: oracle unreliable {:5.1}%; drifted prior: drifted seen pairs \
-             unconverged {:5.1}% (oracle {:5.1}%), untouched {:5.1}%, flips {:5.1}% vs {:5.1}%",
+             unconverged {:5.1}% (oracle {:5.1}%), untouched {:5.1}%, flips {:5.1}% vs {:5.1}%; \
+             key coverage {:5.1}% (ablation d {:5.1}%)",
             100.0 * oracle_rate,
             100.0 * rate_d,
             100.0 * rate_d0,
             100.0 * rate_c,
             100.0 * flip_d,
-            100.0 * flip_c
+            100.0 * flip_c,
+            100.0 * cov,
+            100.0 * cov_d
         );
         if tau.is_none() {
             at_default = Some((oracle_rate, rate_d, rate_d0, rate_c, flip_d, flip_c));
@@ -394,7 +411,7 @@ fn covered_pixel_floor_is_measured() {
     }
     let (oracle_rate, rate_d, rate_d0, rate_c, flip_d, flip_c) = at_default.unwrap();
     assert!(
-        oracle_rate <= 0.15,
+        oracle_rate <= 0.1,
         "the paper default marks {oracle_rate:.3} of the oracle unreliable"
     );
     assert!(rate_d >= 2.0 * rate_d0 && rate_d > rate_c, "{rate_d:.3} vs {rate_d0:.3}, {rate_c:.3}");

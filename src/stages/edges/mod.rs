@@ -209,7 +209,8 @@ pub const GRAPH_KEY: &str = "usplat4d.graph";
 /// key-edge start weights, the graph scope, and where the non-keys' DQB source poses come
 /// from (their pose at t̂, `key_nodes.t_hat`, in the model).
 pub fn graph_metadata(s: &EdgeSettings, tracks: &Tracks) -> serde_json::Value {
-    let unit = if s.scale_normalise { diagonal(&tracks.positions) } else { 1.0 };
+    let diag = diagonal(&tracks.positions);
+    let unit = if s.scale_normalise && diag > 0.0 { diag } else { 1.0 };
     serde_json::json!({
         "r-xyz": s.r_xyz,
         "metric-form": s.metric_form,
@@ -279,13 +280,13 @@ pub fn build(
 }
 
 /// [`build`], with the number of keys that had fewer than min(k, K − 1) qualifying
-/// neighbours (before `key-knn-fill`).
+/// neighbours, and of those with none (before `key-knn-fill`).
 pub fn build_with_report(
     tracks: &Tracks,
     keys: &KeyNodes,
     rotations: &[DMat3],
     s: &EdgeSettings,
-) -> Result<(Edges, usize), EdgeError> {
+) -> Result<(Edges, [usize; 2]), EdgeError> {
     let (n, nt) = (tracks.len(), tracks.num_frames);
     if keys.id.len() != n {
         return Err(EdgeError::KeyCount { found: keys.id.len(), expected: n });
@@ -330,8 +331,8 @@ pub fn build_with_report(
             }
         }
         let diag = diagonal(&tracks.positions);
+        // graph_metadata records the same unit
         let scale = if diag > 0.0 { 1.0 / (diag * diag) } else { 1.0 };
-        // (graph_metadata records diag as the distance unit)
         (u_norm, s.nonkey_weight_sharpness * scale)
     } else {
         (1.0, s.nonkey_weight_sharpness)
@@ -374,6 +375,7 @@ pub fn build_with_report(
     let positions = KeyFrames { eligible: vec![true; world.eligible.len()], ..world.clone() };
     let want = k.min(key_rows.len().saturating_sub(1));
     let short = neighbours.iter().filter(|nb| nb.len() < want).count();
+    let isolated = neighbours.iter().filter(|nb| nb.is_empty()).count();
     let neighbours: Vec<Vec<(f32, u32)>> = neighbours
         .into_par_iter()
         .enumerate()
@@ -497,7 +499,7 @@ pub fn build_with_report(
             );
         }
     }
-    Ok((edges, short))
+    Ok((edges, [short, isolated]))
 }
 
 /// The rows of the key-node table `keys` (one per Gaussian of the uncertainty table) of the
@@ -619,11 +621,11 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
         ),
         _ => Vec::new(),
     };
-    let (edges, short) = build_with_report(tracks, &keys, &rotations, &settings)
+    let (edges, [short, isolated]) = build_with_report(tracks, &keys, &rotations, &settings)
         .map_err(|e| anyhow::anyhow!("{}: {e}", key_path.display()))?;
     ctx.info(format!(
         "edges: {} edges ({} keys, {} Gaussians in the graph); {short} keys had fewer than \
-         {} qualifying neighbours (key-knn-fill {:?})",
+         {} qualifying neighbours, {isolated} none (key-knn-fill {:?})",
         edges.len(),
         keys.num_keys(),
         tracks.len(),
@@ -818,11 +820,11 @@ mod tests {
         }
         let s = EdgeSettings { contrib_threshold: 1.0, ..EdgeSettings::defaults(Profile::Release) };
         let none = EdgeSettings { key_knn_fill: KeyKnnFill::None, ..s.clone() };
-        let (e, short) = build_with_report(&tracks, &keys, &rotations, &none).unwrap();
-        assert!(short >= 3, "{short}");
+        let (e, [short, isolated]) = build_with_report(&tracks, &keys, &rotations, &none).unwrap();
+        assert!(short >= 3 && isolated >= 3, "{short} {isolated}");
         assert_eq!(key_lists(&e).len(), key_rows.len() - 3, "isolated keys have no edge");
-        let (e, short2) = build_with_report(&tracks, &keys, &rotations, &s).unwrap();
-        assert_eq!(short, short2);
+        let (e, report) = build_with_report(&tracks, &keys, &rotations, &s).unwrap();
+        assert_eq!(report, [short, isolated]);
         let lists = key_lists(&e);
         let want = s.key_knn_k.min(key_rows.len() - 1);
         assert_eq!(lists.len(), key_rows.len());
@@ -848,8 +850,8 @@ mod tests {
         let none = EdgeSettings { key_knn_fill: KeyKnnFill::None, ..s.clone() };
         let e = build(&tracks, &keys, &rotations, &none).unwrap();
         assert!(!key_lists(&e).contains_key(&tracks.ids[key_rows[0]]));
-        let (e, short) = build_with_report(&tracks, &keys, &rotations, &s).unwrap();
-        assert!(short >= 1);
+        let (e, [short, isolated]) = build_with_report(&tracks, &keys, &rotations, &s).unwrap();
+        assert!(short >= 1 && isolated >= 1, "{short} {isolated}");
         let l = &key_lists(&e)[&tracks.ids[key_rows[0]]];
         assert_eq!(l.len(), s.key_knn_k);
         assert!(!l.contains(&tracks.ids[key_rows[0]]));

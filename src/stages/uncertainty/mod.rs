@@ -96,7 +96,7 @@ crate::stage_params! {
         /// Covered pixels of the all-covered-pixels test: those where the Gaussian's
         /// blending weight T·α is at least this, in [0, 1]; 0 for every pixel it touches.
         cover_min_weight: f32 => Option<f32> [check::fraction]
-            { paper "0.2", release "0", row "4", heading "Method" },
+            { paper "0.5", release "0", row "4", heading "Method" },
         /// Channel reduction of the L1 error (sum, mean).
         channel_reduce: ChannelReduce => ChannelReduce [check::choice]
             { paper "sum", release "mean", row "6", heading "Method" },
