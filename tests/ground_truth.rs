@@ -35,7 +35,10 @@ fn set_images(dir: &Dir, scene: &str, holes: bool, mode: GtAlpha) {
 
 /// `(converged, u)` of every frame of an uncertainty run on `scene`.
 fn uncertainty(dir: &Dir, scene: &str, out: &str) -> (Vec<bool>, Vec<f32>) {
-    dir.ok(&["uncertainty", "--model", "demo/model", "--scene", scene, "--out", out]);
+    // every touched pixel counts (τ = 0), so a wrong pixel fails its Gaussians
+    let tau = ["--cover-min-weight", "0"];
+    dir.ok(&[&["uncertainty", "--model", "demo/model", "--scene", scene, "--out", out], &tau[..]]
+        .concat());
     let r = UncertaintyReader::open(&dir.join(out).join("uncertainty.parquet")).unwrap();
     let (mut c, mut u) = (Vec::new(), Vec::new());
     for t in 0..r.num_frames() {
