@@ -272,13 +272,12 @@ fn drifted_model(dir: &Dir, oracle: &Model, u0: &[UncertaintyFrame]) -> DriftWin
 /// What [`drifted_model`] returns: window `[N][T]`, drifted `[N]`, offset.
 type DriftWindow = (Vec<Vec<bool>>, Vec<bool>, f32);
 
+/// (Gaussian row, frame) pairs.
+type Pairs = Vec<(usize, usize)>;
+
 /// Seen pairs (the oracle run saw the Gaussian in that frame) inside the drift window, and
 /// the seen pairs of untouched Gaussians.
-fn seen_pairs(
-    u0: &[UncertaintyFrame],
-    window: &[Vec<bool>],
-    drifted: &[bool],
-) -> (Vec<(usize, usize)>, Vec<(usize, usize)>) {
+fn seen_pairs(u0: &[UncertaintyFrame], window: &[Vec<bool>], drifted: &[bool]) -> (Pairs, Pairs) {
     let (n, nt) = (window.len(), u0.len());
     let seen = |i: usize, t: usize| u0[t].n_pixels[i] > 0;
     let all = (0..n).flat_map(|i| (0..nt).map(move |t| (i, t)));

@@ -555,12 +555,13 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     let plane_spacing = (surface::total_area(&pos0, &all_tris[num_model_tris..])
         / p.ground_plane.max(1) as f64)
         .sqrt() as f32;
+    let to_plane = placement.matrix().as_mat4().inverse();
     let shade_fn = |tri: u32, b: [f32; 3]| -> Vec3 {
         if (tri as usize) < num_model_tris {
             shader.color(tri, b)
         } else {
             let q = surface::position(&pos0, tris, &surface::SurfacePoint { tri, b });
-            plane_color(q, placement.matrix().as_mat4())
+            plane_color(to_plane.transform_point3(q))
         }
     };
     let n = gauss_pts.len();
@@ -808,10 +809,10 @@ fn ground_plane(floor: f32, placement: Mat4, first_vertex: u32) -> (Vec<Vec3>, V
     (verts, tris)
 }
 
-/// Linear colour of the ground plane at world point `q`: a grey checkerboard of squares
-/// 0.25 normalised units wide, with a smooth tint so that no two squares look alike.
-fn plane_color(q: Vec3, placement: Mat4) -> Vec3 {
-    let local = placement.inverse().transform_point3(q);
+/// Linear colour of the ground plane at `local` (normalised model space): a grey
+/// checkerboard of squares 0.25 units wide, with a smooth tint so that no two squares look
+/// alike.
+fn plane_color(local: Vec3) -> Vec3 {
     let (u, v) = (local.x / 0.25, local.z / 0.25);
     let check = if (u.floor() as i64 + v.floor() as i64).rem_euclid(2) == 0 { 0.6 } else { 0.25 };
     let tint = 0.5 + 0.5 * (0.7 * local.x).sin() * (0.9 * local.z).cos();
