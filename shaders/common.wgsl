@@ -44,6 +44,8 @@ struct Params {
     color_stride: u32,
     pair_cap: u32,
     num_tiles: u32,
+    // convergence `fail_pairs`: a pixel counts for a Gaussian when T·α >= this (0: any α > 0)
+    min_weight: f32,
 }
 
 // A projected Gaussian as the rasterizers read it.

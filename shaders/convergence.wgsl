@@ -1,7 +1,8 @@
 // file: convergence.wgsl
 // Convergence tests on a finished forward pass (mirror of forward.rs::failing_pairs and
 // cpu.rs::centre_pass). `fail_pairs`: per tile, each failing pixel's thread marks every
-// Gaussian blended into it (list position < last contributor, α > 0). `centre`: one thread
+// Gaussian blended into it (list position < last contributor, α > 0, and T·α at least
+// P.min_weight, with the forward pass's transmittance T). `centre`: one thread
 // per Gaussian tests the pixel under its projected centre. Output [N]: 1 = passes.
 
 @group(0) @binding(0) var<uniform> P: Params;
@@ -43,6 +44,7 @@ fn fail_pairs(
     let range = workgroupUniformLoad(&sh_range);
     let n_used = workgroupUniformLoad(&sh_max);
     let pix = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
+    var tr = 1.0;
     for (var b0 = 0u; b0 < n_used; b0 += 256u) {
         let n_b = min(256u, n_used - b0);
         if (lin < n_b) {
@@ -56,7 +58,10 @@ fn fail_pairs(
             let g = staged(j);
             let e = alpha_parts(g, g.mean.x - pix.x, g.mean.y - pix.y, P.alpha_max, P.cutoff);
             if (e.x > 0.0) {
-                atomicMax(&fail[staged_id(j)], 1u);
+                if (e.x * tr >= P.min_weight) {
+                    atomicMax(&fail[staged_id(j)], 1u);
+                }
+                tr *= 1.0 - e.x;
             }
         }
         workgroupBarrier();

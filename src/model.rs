@@ -137,10 +137,11 @@ impl Model {
 
     /// The camera to render training frame `scene_cam.frame` with: the model's own camera
     /// (intrinsics rescaled to the scene image's size) when the model carries cameras, else
-    /// `scene_cam` itself. Image paths stay those of the scene.
+    /// `scene_cam` mapped through the scene-to-model similarity
+    /// ([`Model::camera_in_model_frame`]). Image paths stay those of the scene.
     pub fn training_camera(&self, scene_cam: &Camera) -> Camera {
         let Some(mc) = self.cameras.as_ref().and_then(|c| c.get(scene_cam.frame as usize)) else {
-            return scene_cam.clone();
+            return self.camera_in_model_frame(scene_cam);
         };
         let sx = scene_cam.width as f64 / mc.width as f64;
         let sy = scene_cam.height as f64 / mc.height as f64;
@@ -152,6 +153,17 @@ impl Model {
             w2c: mc.w2c,
             distortion: None,
             ..scene_cam.clone()
+        }
+    }
+
+    /// The camera that renders scene camera `cam` in this model: [`Model::training_camera`]
+    /// for a training camera, [`Model::camera_in_model_frame`] for an evaluation view (the
+    /// similarity fitted to the training cameras, the Sim(3) alignment step of MoSca's
+    /// evaluation, without its test-time pose optimisation).
+    pub fn render_camera(&self, cam: &Camera) -> Camera {
+        match cam.split {
+            crate::scene::Split::Train => self.training_camera(cam),
+            crate::scene::Split::Eval => self.camera_in_model_frame(cam),
         }
     }
 

@@ -6,7 +6,9 @@
 //! `tracks_3d.parquet` / `tracks_2d.parquet` (ground-truth or prior tracks), and optionally
 //! `priors.json`, the manifest that says which files a monocular pipeline sees (the priors)
 //! and which are ground truth kept for evaluation ([`MonocularInputs`]).
-//! [`Scene::ground_truth`] reads one image's references for the stages that compare with it.
+//! [`Scene::ground_truth`] reads one image's references for the stages that compare with it;
+//! what the images' alpha channel means ([`GtAlpha`]) is a scene property recorded in the
+//! cameras table's metadata under [`GT_ALPHA_KEY`].
 
 use std::path::{Path, PathBuf};
 
@@ -30,6 +32,45 @@ impl From<&Camera> for RenderCamera {
             height: c.height,
             near: 0.01,
             far: 1e10,
+        }
+    }
+}
+
+/// Key of the cameras table's metadata that records the scene's [`GtAlpha`]
+/// (`coverage` or `ignore`).
+pub const GT_ALPHA_KEY: &str = "usplat4d.gt_alpha";
+
+/// What the alpha channel of a scene's images means, hence how every stage that compares
+/// with the ground truth reads its colour (issue 15 item 2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GtAlpha {
+    /// Alpha is the object's coverage (synthetic scenes): the colour is composited over the
+    /// render background, as the render it is compared with.
+    Coverage,
+    /// Alpha is not coverage (DyCheck: 0 where the LiDAR depth is missing, over valid
+    /// colour): the colour is the plain RGB, alpha is ignored.
+    Ignore,
+}
+
+impl GtAlpha {
+    /// The spelling stored under [`GT_ALPHA_KEY`].
+    pub fn as_str(self) -> &'static str {
+        match self {
+            GtAlpha::Coverage => "coverage",
+            GtAlpha::Ignore => "ignore",
+        }
+    }
+
+    /// The colour `[H, W, 3]` of `img` read as this mode says.
+    pub fn rgb(self, img: &Image, background: [f32; 3]) -> Image {
+        match self {
+            GtAlpha::Coverage => img.rgb_over(background),
+            GtAlpha::Ignore if img.channels == 4 => {
+                let data = img.data.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
+                Image { width: img.width, height: img.height, channels: 3, data }
+            }
+            GtAlpha::Ignore => img.rgb_over(background),
         }
     }
 }
@@ -81,9 +122,47 @@ impl Scene {
         Ok(scene)
     }
 
-    /// Write the cameras table of this scene atomically.
+    /// Write the cameras table of this scene atomically, recording `gt_alpha`.
+    pub fn save_with(&self, provenance: &Provenance, gt_alpha: GtAlpha) -> tables::Result<()> {
+        let prov = provenance.clone().with_metadata(GT_ALPHA_KEY, gt_alpha.as_str());
+        tables::cameras::write(&Self::cameras_path(&self.dir), &self.cameras, &prov)
+    }
+
+    /// Write the cameras table of this scene atomically (alpha is coverage).
     pub fn save(&self, provenance: &Provenance) -> tables::Result<()> {
-        tables::cameras::write(&Self::cameras_path(&self.dir), &self.cameras, provenance)
+        self.save_with(provenance, GtAlpha::Coverage)
+    }
+
+    /// What the alpha of this scene's images means: the cameras table's [`GT_ALPHA_KEY`];
+    /// without one, `ignore` for tables written by `import dycheck` (before the key existed)
+    /// and `coverage` otherwise (also when the scene has no cameras table on disk).
+    pub fn gt_alpha(&self) -> tables::Result<GtAlpha> {
+        let path = Self::cameras_path(&self.dir);
+        if !path.exists() {
+            return Ok(GtAlpha::Coverage);
+        }
+        let r = tables::TableReader::open::<tables::cameras::CamerasTable>(&path)?;
+        match r.metadata_value(GT_ALPHA_KEY).as_deref() {
+            Some("coverage") => Ok(GtAlpha::Coverage),
+            Some("ignore") => Ok(GtAlpha::Ignore),
+            None if r.metadata_value(tables::io::KEY_STAGE).as_deref()
+                == Some("import dycheck") =>
+            {
+                Ok(GtAlpha::Ignore)
+            }
+            None => Ok(GtAlpha::Coverage),
+            Some(other) => Err(tables::Error::Mismatch {
+                path,
+                msg: format!("metadata {GT_ALPHA_KEY} is '{other}', expected coverage or ignore"),
+            }),
+        }
+    }
+
+    /// The ground-truth colour `[H, W, 3]` of `cam`'s image as [`Scene::gt_alpha`] says
+    /// (over `background` for coverage alpha); errors name the file.
+    pub fn ground_truth_rgb(&self, cam: &Camera, background: [f32; 3]) -> anyhow::Result<Image> {
+        let img = png::read_png(&self.resolve(&cam.image_path))?;
+        Ok(self.gt_alpha()?.rgb(&img, background))
     }
 
     /// Training cameras (the monocular video), in table order.
@@ -148,9 +227,9 @@ impl Scene {
         Ok(MonocularInputs { depth_prefix: key("depth_prefix")?, tracks_2d: key("tracks_2d")? })
     }
 
-    /// Read the image of `cam` composited over `background`, and its mask and depth map when
-    /// asked for (and the camera has them); they must match the image's size. Errors name
-    /// the file.
+    /// Read the colour of `cam`'s image ([`Scene::ground_truth_rgb`]), and its mask and
+    /// depth map when asked for (and the camera has them); they must match the image's size.
+    /// Errors name the file.
     pub fn ground_truth(
         &self,
         cam: &Camera,
@@ -158,7 +237,7 @@ impl Scene {
         with_mask: bool,
         with_depth: bool,
     ) -> anyhow::Result<GroundTruth> {
-        let rgb = png::read_png(&self.resolve(&cam.image_path))?.rgb_over(background);
+        let rgb = self.ground_truth_rgb(cam, background)?;
         let (w, h) = (rgb.width, rgb.height);
         let mask = match (&cam.mask_path, with_mask) {
             (Some(m), true) => {

@@ -244,7 +244,7 @@ fn keyframe_states(
             let cam = train
                 .get(f)
                 .ok_or_else(|| Error::Mismatch(format!("no training camera at frame {f}")))?;
-            Ok((model.frame(f)?, RenderCamera::from(*cam)))
+            Ok((model.frame(f)?, RenderCamera::from(&model.training_camera(cam))))
         })
         .collect()
 }

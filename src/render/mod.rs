@@ -202,13 +202,17 @@ pub struct RenderOutput {
 
 /// Which per-Gaussian convergence indicator [`DifferentiableRenderer::convergence_saved`]
 /// computes (paper Eq. 5's product, or the release's centre pixel).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ConvergenceTest {
     /// No pixel the Gaussian was blended into fails (vacuously true for unseen Gaussians).
     AllCoveredPixels,
     /// The pixel under the projected centre passes (false when the centre is off-screen or
     /// the Gaussian is culled).
     CentrePixel,
+    /// No pixel where the Gaussian's blending weight T·α is at least the given floor
+    /// (in (0, 1]) fails: the covered-pixel set restricted to the pixels the Gaussian
+    /// visibly contributes to (issue 15 item 4).
+    WeightedPixels(f32),
 }
 
 /// A Gaussian rasterizer.

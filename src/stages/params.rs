@@ -170,6 +170,12 @@ pub mod check {
         if v.is_finite() { Ok(v) } else { Err(format!("{v} is not a finite number")) }
     }
 
+    /// A fraction in [0, 1].
+    pub fn fraction(s: &str) -> Result<f32, String> {
+        let v = finite32(s)?;
+        if (0.0..=1.0).contains(&v) { Ok(v) } else { Err(format!("{v} must be in [0, 1]")) }
+    }
+
     /// A percentile in [0, 100].
     pub fn percentile(s: &str) -> Result<f32, String> {
         let v = finite32(s)?;

@@ -129,7 +129,8 @@ fn render_frame(
     cam: &Camera,
     settings: &RenderSettings,
 ) -> anyhow::Result<RenderOutput> {
-    Ok(renderer.render(&RenderCamera::from(cam), &model.splat_inputs(state), settings)?)
+    let cam = model.render_camera(cam);
+    Ok(renderer.render(&RenderCamera::from(&cam), &model.splat_inputs(state), settings)?)
 }
 
 /// Run `usplat4d render`.

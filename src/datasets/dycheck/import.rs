@@ -126,7 +126,8 @@ pub fn import(p: &ImportDycheckParams, ctx: &Context) -> Result<Scene> {
     });
     super::write_json(&p.out.join("scene.json"), &meta)?;
     let scene = Scene { dir: p.out.clone(), cameras };
-    scene.save(&Provenance::new("import dycheck", p))?;
+    // DyCheck's alpha marks missing LiDAR depth, not coverage: compare plain RGB.
+    scene.save_with(&Provenance::new("import dycheck", p), crate::scene::GtAlpha::Ignore)?;
     Ok(scene)
 }
 

@@ -114,6 +114,12 @@ pub struct SynthParams {
     #[arg(long, default_value_t = 1024, help_heading = "Ground truth")]
     #[serde(default = "defaults::tracks")]
     pub tracks: u32,
+    /// Static ground plane under the model with this many static oracle Gaussians on it
+    /// (`dynamic = false`), 0 for none: a well-observed static background as real base
+    /// models have. It is in the colour, alpha and depth, not in the foreground mask.
+    #[arg(long, default_value_t = 0, help_heading = "Ground truth")]
+    #[serde(default)]
+    pub ground_plane: u32,
     /// Seed of the surface sampling.
     #[arg(long, default_value_t = 0, help_heading = "Ground truth")]
     #[serde(default)]
@@ -505,24 +511,51 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     let to_world = placement.matrix().as_mat4()
         * Mat4::from_scale(Vec3::splat(norm_scale))
         * Mat4::from_translation(-centre);
+    // The model's triangles, then those of the ground plane (static vertices appended).
+    let num_model_tris = asset.mesh.tris.len();
+    let num_model_verts =
+        skin::pose_vertices(&asset, &anim::pose(&asset.nodes, &asset.parent, anim, times[0])).len();
+    let (plane_verts, plane_tris) = if p.ground_plane > 0 {
+        let floor = (lo.y - centre.y) * norm_scale;
+        ground_plane(floor, placement.matrix().as_mat4(), num_model_verts as u32)
+    } else {
+        (Vec::new(), Vec::new())
+    };
+    let all_tris: Vec<[u32; 3]> = asset.mesh.tris.iter().chain(&plane_tris).copied().collect();
     let posed = |t: usize| -> Vec<Vec3> {
         let v =
             skin::pose_vertices(&asset, &anim::pose(&asset.nodes, &asset.parent, anim, times[t]));
-        v.into_iter().map(|p| to_world.transform_point3(p)).collect()
+        v.into_iter()
+            .map(|p| to_world.transform_point3(p))
+            .chain(plane_verts.iter().copied())
+            .collect()
     };
-    let tris = &asset.mesh.tris;
+    let tris = &all_tris;
+    let model_tris = &all_tris[..num_model_tris];
 
     // Surface samples on frame 0.
     let pos0 = posed(0);
-    let gauss_pts = surface::sample_surface(
+    let mut gauss_pts = surface::sample_surface(
         &pos0,
-        tris,
+        model_tris,
         p.gaussians as usize,
         &mut Rng::from_state(p.seed).after(1),
     );
+    let num_dynamic = gauss_pts.len();
+    let plane_pts = surface::sample_surface(
+        &pos0,
+        &all_tris[num_model_tris..],
+        p.ground_plane as usize,
+        &mut Rng::from_state(mix(p.seed ^ 0x9d0u64)).after(1),
+    );
+    gauss_pts.extend(
+        plane_pts
+            .into_iter()
+            .map(|s| surface::SurfacePoint { tri: s.tri + num_model_tris as u32, ..s }),
+    );
     let track_pts = surface::sample_surface(
         &pos0,
-        tris,
+        model_tris,
         p.tracks as usize,
         &mut Rng::from_state(mix(!p.seed)).after(1),
     );
@@ -532,16 +565,33 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
             msg: "the surface has zero area at frame 0".into(),
         });
     }
-    let spacing = (surface::total_area(&pos0, tris) / p.gaussians as f64).sqrt() as f32;
+    let spacing = (surface::total_area(&pos0, model_tris) / p.gaussians as f64).sqrt() as f32;
+    let plane_spacing = (surface::total_area(&pos0, &all_tris[num_model_tris..])
+        / p.ground_plane.max(1) as f64)
+        .sqrt() as f32;
+    let to_plane = placement.matrix().as_mat4().inverse();
+    let shade_fn = |tri: u32, b: [f32; 3]| -> Vec3 {
+        if (tri as usize) < num_model_tris {
+            shader.color(tri, b)
+        } else {
+            let q = surface::position(&pos0, tris, &surface::SurfacePoint { tri, b });
+            plane_color(to_plane.transform_point3(q))
+        }
+    };
     let n = gauss_pts.len();
     let gaussians = Gaussians {
         id: (0..n as u32).collect(),
-        dynamic: vec![true; n],
-        scale: vec![[0.5 * spacing, 0.5 * spacing, 0.05 * spacing]; n],
+        dynamic: (0..n).map(|i| i < num_dynamic).collect(),
+        scale: (0..n)
+            .map(|i| {
+                let s = if i < num_dynamic { spacing } else { plane_spacing };
+                [0.5 * s, 0.5 * s, 0.05 * s]
+            })
+            .collect(),
         opacity: vec![0.95; n],
         color: gauss_pts
             .iter()
-            .map(|s| shader.color(s.tri, s.b).to_array().map(shade::linear_to_srgb))
+            .map(|s| shade_fn(s.tri, s.b).to_array().map(shade::linear_to_srgb))
             .collect(),
         sh_degree: 0,
         sh_rest: Vec::new(),
@@ -593,7 +643,6 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     let mut exact_tracks: Vec<Tracks2dFrame> = Vec::new();
     let (mut depth_err, mut depth_px) = (0.0f64, 0usize);
     let ss = p.supersample as usize;
-    let shade_fn = |tri: u32, b: [f32; 3]| shader.color(tri, b);
     let bar = ctx.progress(cams.len() as u64, "render");
     let mut next_train = 0u32;
     for (&(eval, frame), idx) in &by_frame {
@@ -605,7 +654,7 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
                 let cam = &cams[i];
                 let view = raster::View::of(cam);
                 let samples = raster::rasterize(&view, ss, &pos, tris);
-                let r = raster::resolve(&samples, &shade_fn);
+                let r = raster::resolve(&samples, &shade_fn, num_model_tris as u32);
                 write_png(&p.out.join(&cam.image_path), &r.rgba)?;
                 write_npy_f32(&p.out.join(depth_rel(cam)), &[view.height, view.width], &r.depth)?;
                 write_png(
@@ -731,6 +780,7 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
         "orbit_distance": if on_path { None } else { Some(cameras::ORBIT_DISTANCE) },
         "procedural_texture": shader.any_procedural(),
         "oracle_spacing": spacing,
+        "ground_plane_gaussians": p.ground_plane,
         "trajectory": p.trajectory,
     });
     let text = serde_json::to_string_pretty(&info).unwrap_or_default();
@@ -740,6 +790,47 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
         dycheck::write_layout(&scene, &p.out.join("dycheck"), ctx)?;
     }
     Ok(Summary { frames: num_train, images: scene.cameras.len(), triangles: tris.len() })
+}
+
+/// Half the side of the ground plane, in normalised model units (the model's box diagonal
+/// is 2).
+const PLANE_HALF_SIDE: f32 = 1.5;
+
+/// Quads per side of the ground plane's triangle grid.
+const PLANE_GRID: u32 = 8;
+
+/// The ground plane at height `floor` (normalised model space, +Y up) mapped by `placement`
+/// into the world: its vertices and its triangles, numbered from `first_vertex`.
+fn ground_plane(floor: f32, placement: Mat4, first_vertex: u32) -> (Vec<Vec3>, Vec<[u32; 3]>) {
+    let g = PLANE_GRID;
+    let mut verts = Vec::new();
+    for j in 0..=g {
+        for i in 0..=g {
+            let (x, z) = [i, j].map(|k| (2.0 * k as f32 / g as f32 - 1.0) * PLANE_HALF_SIDE).into();
+            verts.push(placement.transform_point3(Vec3::new(x, floor, z)));
+        }
+    }
+    let mut tris = Vec::new();
+    for j in 0..g {
+        for i in 0..g {
+            let a = first_vertex + j * (g + 1) + i;
+            let (b, c, d) = (a + 1, a + g + 1, a + g + 2);
+            // counter-clockwise seen from above (+Y)
+            tris.push([a, c, b]);
+            tris.push([b, c, d]);
+        }
+    }
+    (verts, tris)
+}
+
+/// Linear colour of the ground plane at `local` (normalised model space): a grey
+/// checkerboard of squares 0.25 units wide, with a smooth tint so that no two squares look
+/// alike.
+fn plane_color(local: Vec3) -> Vec3 {
+    let (u, v) = (local.x / 0.25, local.z / 0.25);
+    let check = if (u.floor() as i64 + v.floor() as i64).rem_euclid(2) == 0 { 0.6 } else { 0.25 };
+    let tint = 0.5 + 0.5 * (0.7 * local.x).sin() * (0.9 * local.z).cos();
+    Vec3::new(check * (0.8 + 0.2 * tint), check * 0.85, check * (1.0 - 0.2 * tint))
 }
 
 /// Directory of the realistic priors inside the scene.

@@ -7,7 +7,7 @@
 //! of [`BAND`] sample rows, each band testing every triangle whose bounding box meets it, so
 //! a sample is written by one task only. [`resolve`] maps one task to one pixel row: colour =
 //! mean linear colour of the covered samples (then sRGB), alpha = covered fraction, z-depth
-//! = nearest covered sample where alpha > 0.5 (else 0), mask = alpha > 0.5. Sample centres
+//! = nearest covered sample where alpha > 0.5 (else 0), mask = foreground coverage > 0.5. Sample centres
 //! sit at `(i + 0.5) / ss` pixels; pixel centres at +0.5. Triangles with a vertex closer than
 //! [`NEAR`] to the camera plane are dropped (no clipping).
 
@@ -190,14 +190,21 @@ pub fn rasterize(view: &View, ss: usize, pos: &[Vec3], tris: &[[u32; 3]]) -> Sam
 pub struct Resolved {
     /// RGBA `[H, W, 4]`: sRGB/255 colour of the covered part, alpha = coverage.
     pub rgba: Image,
-    /// Mask `[H, W, 1]`: 1 where coverage > 0.5.
+    /// Mask `[H, W, 1]`: 1 where the coverage by foreground triangles (ids below the
+    /// `foreground` of [`resolve`]) is > 0.5.
     pub mask: Image,
     /// z-depth `[H, W]`, world units, 0 where coverage ≤ 0.5.
     pub depth: Vec<f32>,
 }
 
 /// Shade and average the samples per pixel; `shade(tri, barycentrics)` gives linear RGB.
-pub fn resolve(s: &Samples, shade: &(dyn Fn(u32, [f32; 3]) -> Vec3 + Sync)) -> Resolved {
+/// Triangles with ids from `foreground` on (a static ground plane) are background: in the
+/// colour, alpha and depth, not in the mask.
+pub fn resolve(
+    s: &Samples,
+    shade: &(dyn Fn(u32, [f32; 3]) -> Vec3 + Sync),
+    foreground: u32,
+) -> Resolved {
     let (w, h, ss) = (s.width / s.ss, s.height / s.ss, s.ss);
     let mut rgba = Image::filled(w, h, 4, 0.0);
     let mut mask = Image::filled(w, h, 1, 0.0);
@@ -210,12 +217,14 @@ pub fn resolve(s: &Samples, shade: &(dyn Fn(u32, [f32; 3]) -> Vec3 + Sync)) -> R
         .for_each(|(py, ((rgba_row, mask_row), depth_row))| {
             for px in 0..w {
                 let (mut sum, mut n, mut zmin) = (Vec3::ZERO, 0usize, f32::INFINITY);
+                let mut n_fg = 0usize;
                 for sy in 0..ss {
                     let row = (py * ss + sy) * s.width + px * ss;
                     for smp in &s.data[row..row + ss] {
                         if smp.covered() {
                             sum += shade(smp.tri, [1.0 - smp.b1 - smp.b2, smp.b1, smp.b2]);
                             n += 1;
+                            n_fg += usize::from(smp.tri < foreground);
                             zmin = zmin.min(smp.z);
                         }
                     }
@@ -231,8 +240,10 @@ pub fn resolve(s: &Samples, shade: &(dyn Fn(u32, [f32; 3]) -> Vec3 + Sync)) -> R
                 o[2] = super::shade::linear_to_srgb(c.z);
                 o[3] = alpha;
                 if alpha > 0.5 {
-                    mask_row[px] = 1.0;
                     depth_row[px] = zmin;
+                }
+                if n_fg * 2 > ss * ss {
+                    mask_row[px] = 1.0;
                 }
             }
         });
@@ -294,7 +305,7 @@ mod tests {
         let v = view(16);
         let pos = [Vec3::new(0.0, 0.0, 2.0), Vec3::new(1.0, 0.0, 2.0), Vec3::new(0.0, 1.0, 2.0)];
         let s = rasterize(&v, 2, &pos, &[[0, 1, 2]]);
-        let r = resolve(&s, &|_, _| Vec3::ONE);
+        let r = resolve(&s, &|_, _| Vec3::ONE, u32::MAX);
         let covered: usize = s.data.iter().filter(|x| x.covered()).count();
         // Half of an 8×8 pixel square = 16×16 samples / 2 (+ the diagonal's samples).
         assert!((covered as i64 - 128).abs() <= 16, "{covered}");

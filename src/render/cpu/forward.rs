@@ -294,6 +294,56 @@ pub fn failing_pairs(
     fail
 }
 
+/// [`failing_pairs`] over the pixels where the pair's blending weight T·α reaches
+/// `min_weight` (the covered-pixel set of the convergence test as a parameter, issue 15
+/// item 4): each failing pixel walks its tile's list front to back up to its last
+/// contributor, with the forward pass's alphas and transmittance (so the weights are the
+/// forward's, bit for bit). Reference for the GPU `fail_pairs` kernel with a weight floor.
+pub fn failing_pairs_weighted(
+    inp: &RasterInputs,
+    last_contributor: &[u32],
+    pixel_pass: &[bool],
+    min_weight: f32,
+) -> Vec<bool> {
+    inp.check();
+    let w = inp.grid.width as usize;
+    assert_eq!(last_contributor.len(), w * inp.grid.height as usize, "last_contributor [H, W]");
+    assert_eq!(pixel_pass.len(), last_contributor.len(), "pixel_pass [H, W]");
+    let _span = tracing::debug_span!("render.failing_pairs_weighted").entered();
+    let mut fail = vec![false; inp.isect.keys.len()];
+    let tx = inp.grid.tiles_x as usize;
+    inp.split_by_strip(&mut fail).into_par_iter().enumerate().for_each(|(s, strip)| {
+        let strip_start = inp.offsets[s * tx];
+        let mut alpha = [0.0f32; SPAN];
+        for t in s * tx..(s + 1) * tx {
+            let (x0, y0, x1, y1) = inp.tile_pixels(t);
+            let ids = &inp.isect.gaussian[inp.offsets[t]..inp.offsets[t + 1]];
+            let out = &mut strip[inp.offsets[t] - strip_start..];
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let p = y as usize * w + x as usize;
+                    if pixel_pass[p] {
+                        continue;
+                    }
+                    let mut tr = 1.0f32;
+                    for (j, &g) in ids[..last_contributor[p] as usize].iter().enumerate() {
+                        let g = &inp.splats[g as usize];
+                        span_alpha(g, x, 1, y, inp.alpha_max, inp.cutoff, &mut alpha);
+                        if alpha[0] == 0.0 {
+                            continue;
+                        }
+                        if alpha[0] * tr >= min_weight {
+                            out[j] = true;
+                        }
+                        tr *= 1.0 - alpha[0];
+                    }
+                }
+            }
+        }
+    });
+    fail
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -23,7 +23,7 @@ use crate::render::{
     SplatInputs, sh,
 };
 use backward::rasterize_bwd;
-use forward::{FwdImages, RasterInputs, failing_pairs, rasterize_fwd};
+use forward::{FwdImages, RasterInputs, failing_pairs, failing_pairs_weighted, rasterize_fwd};
 use isect::{Intersections, TileGrid, isect_tiles, tile_ranges};
 use project::{CameraConsts, Splat2d, Splat2dGrad, project, project_vjp};
 
@@ -383,7 +383,12 @@ impl DifferentiableRenderer for CpuRenderer {
             alpha_max: settings.alpha_max,
             cutoff: saved.cutoff,
         };
-        let fail = failing_pairs(&inp, &saved.last_contributor, pixel_pass);
+        let fail = match test {
+            ConvergenceTest::WeightedPixels(min_weight) => {
+                failing_pairs_weighted(&inp, &saved.last_contributor, pixel_pass, min_weight)
+            }
+            _ => failing_pairs(&inp, &saved.last_contributor, pixel_pass),
+        };
         let mut ok = vec![true; saved.splats.len()];
         for (&g, f) in saved.isect.gaussian.iter().zip(&fail) {
             ok[g as usize] &= !f;

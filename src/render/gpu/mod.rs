@@ -544,6 +544,12 @@ impl DifferentiableRenderer for GpuRenderer {
         }
         let pass: Vec<u32> = pixel_pass.iter().map(|&p| p as u32).collect();
         ctx.queue.write_buffer(&c.pass, 0, bytemuck::cast_slice(&pass));
+        let min_weight = match test {
+            ConvergenceTest::WeightedPixels(m) => m,
+            _ => 0.0,
+        };
+        let at = (4 * params::MIN_WEIGHT_WORD) as u64;
+        ctx.queue.write_buffer(&frame.params, at, bytemuck::bytes_of(&min_weight.to_bits()));
         let k = &ctx.kernels.convergence;
         let g = bind(
             ctx,
@@ -561,7 +567,7 @@ impl DifferentiableRenderer for GpuRenderer {
         let n = saved.n;
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         match test {
-            ConvergenceTest::AllCoveredPixels => {
+            ConvergenceTest::AllCoveredPixels | ConvergenceTest::WeightedPixels(_) => {
                 enc.clear_buffer(&c.fail, 0, None);
                 dispatch(
                     &mut enc,

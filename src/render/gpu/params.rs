@@ -1,5 +1,6 @@
 //! Packing of the kernels' uniform block (`Params` in shaders/common.wgsl): six vec4s, then
-//! 32 scalars in declaration order.
+//! 32 scalars in declaration order; the convergence test's `min_weight` (word
+//! [`MIN_WEIGHT_WORD`]) is written by `convergence_saved` and 0 otherwise.
 
 use super::super::cpu::project::CameraConsts;
 use super::super::{RenderCamera, RenderSettings};
@@ -12,6 +13,9 @@ pub(crate) enum ColorMode {
     ShWorld = 1,
     ShLocal = 2,
 }
+
+/// Word of `Params::min_weight` in the uniform block.
+pub(crate) const MIN_WEIGHT_WORD: usize = 50;
 
 /// The uniform block of one render.
 pub(crate) fn pack(

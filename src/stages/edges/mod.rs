@@ -11,6 +11,18 @@
 //! (`max-contrib`), or by the time-averaged distance (`max-native`). Ablation (b): plain
 //! Euclidean kNN at t̂ among all keys (`euclidean`).
 //!
+//! A key with fewer than k qualifying neighbours is filled by `key-knn-fill`: paper
+//! `nearest` (the nearest other keys at t̂ in the same metric without the reliability
+//! condition; release modes without t̂: time-averaged distance), so no key is left without
+//! neighbours (min(k, K − 1) each); release `first-keys`, the release's own padding (its
+//! never-co-confident pairs at +∞ come out of its top-k in key order), without the
+//! self-loops its "drop self" step leaves on such rows.
+//!
+//! *Scale* (`scale-normalise`, paper profile): reliable u are divided by the keys' median
+//! reliable u before Eqs. 7-8 (φ unchanged) and the non-key weight distances by the graph's
+//! bounding-box diagonal, so scene scale and image resolution (u ∝ 1/pixels²) do not change
+//! the graph; the release works in raw units, as its code does.
+//!
 //! *Non-key → key.* Paper (Eq. 8): i is attached to
 //! j = argmin_l Σ_t ‖p_{i,t} − p_{l,t}‖_{(U_{t,i} + U_{t,l})} (same form), summed over all
 //! T frames as written: with `weight`, a frame where the key is unreliable (u = φ) adds a
@@ -19,13 +31,16 @@
 //! `inverse` such a frame adds ≈ 0. Then i is connected to E_j ∪ {j}.
 //! Release: the 5 keys of lowest max_{t: key confident} ‖p_u(t) − p_k(t)‖.
 //!
+//! *Graph scope.* Only the Gaussians in `graph-scope` (dynamic by default, issue 15 item 1)
+//! are keys, non-keys or neighbours; the others get no edges.
+//!
 //! *Left-out non-keys.* Gaussians whose `key_nodes` role is `unlinked` or `culled` (the
 //! release's non-key cap and minimum contribution, profile rows 33-35) get no edges.
 //!
-//! *Weights*, normalised over the edges leaving each Gaussian: key edges `uniform` (the
-//! release's initial learned weights, 1/k) or `rigidity` (our choice for the paper's
-//! unspecified w_ij: exp(−β·cv²) with cv the coefficient of variation of the pair's
-//! distance over time, so pairs moving rigidly together weigh most); non-key edges
+//! *Weights*, normalised over the edges leaving each Gaussian: key edges `uniform` (both
+//! profiles: the release's initial learned weights, 1/k, which the optimiser learns; the
+//! paper leaves w_ij unspecified) or `rigidity` (an option: exp(−β·cv²) with cv the
+//! coefficient of variation of the pair's distance over time); non-key edges
 //! exp(−λ d²) at the non-key's t̂, clamped to [1e-10, 1e10] (release `cal_weight_edges2`
 //! with θ = 1).
 //!
@@ -41,7 +56,7 @@ use rayon::prelude::*;
 
 use super::graph::metric::{MetricForm, apply};
 use super::graph::search::{self, KeyFrames};
-use super::graph::tracks::Tracks;
+use super::graph::tracks::{GraphScope, ScopedTracks, Tracks};
 use super::params::check;
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
@@ -74,6 +89,22 @@ pub enum KeyEdgeWeights {
     Rigidity,
     /// 1/k (the release's initial learned weights).
     Uniform,
+}
+
+/// What a key with fewer than k qualifying neighbours (no co-confident frame, too few keys
+/// reliable at its t̂) is given to fill its k (issue 15 item 8).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KeyKnnFill {
+    /// The nearest other keys at t̂ in the mode's own metric, the reliability condition
+    /// dropped (release modes without a t̂: the time-averaged distance).
+    Nearest,
+    /// The release's padding: never-co-confident pairs sit at +∞, which its top-k returns
+    /// in key order, so the first keys in key order; without the release's self-loops
+    /// (a row of +∞ loses a real neighbour to its "drop self" step there).
+    FirstKeys,
+    /// No fill: such a key keeps fewer neighbours, possibly none.
+    None,
 }
 
 /// How non-key Gaussians are attached to keys (profile row 30).
@@ -110,15 +141,22 @@ crate::stage_params! {
         scene: Option<PathBuf>,
     }
     params {
+        /// Gaussians taken into the graph (dynamic, all): keys and non-keys outside it get
+        /// no edges and are nobody's neighbour.
+        graph_scope: GraphScope => GraphScope [check::choice]
+            { paper "dynamic", release "dynamic", row "3", heading "Method" },
         /// Key → key mode (ua-knn, euclidean, minmax-distance, max-contrib, max-native).
         key_edge_mode: KeyEdgeMode => KeyEdgeMode [check::choice]
             { paper "ua-knn", release "minmax-distance", row "26", heading "Method" },
         /// Neighbours per key.
         key_knn_k: usize => usize [check::count]
             { paper "8", release "120", row "25", heading "Method" },
+        /// Fill of keys with fewer than k qualifying neighbours (nearest, first-keys, none).
+        key_knn_fill: KeyKnnFill => KeyKnnFill [check::choice]
+            { paper "nearest", release "first-keys", row "25", heading "Method" },
         /// Key edge weights (rigidity, uniform).
         key_edge_weights: KeyEdgeWeights => KeyEdgeWeights [check::choice]
-            { paper "rigidity", release "uniform", row "27", heading "Method" },
+            { paper "uniform", release "uniform", row "27", heading "Method" },
         /// β of the rigidity weights exp(−β·cv²).
         rigidity_sharpness: f64 => f64 [check::parsed]
             { paper "50", release "50", row "", heading "Method" },
@@ -131,6 +169,12 @@ crate::stage_params! {
         /// λ of the non-key weights exp(−λ d²).
         nonkey_weight_sharpness: f64 => f64 [check::parsed]
             { paper "100", release "100", row "32", heading "Method" },
+        /// Scale normalisation (paper App. "Adaptation": unify the spatial volume, normalise
+        /// the thresholds): u of Eqs. 7-8 divided by the keys' median reliable u, and the
+        /// distances of the non-key weights by the graph's bounding-box diagonal (over all
+        /// frames), so that scene scale and image resolution do not change the graph.
+        scale_normalise: bool => bool [check::parsed]
+            { paper "true", release "false", row "32", heading "Method" },
         /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
         /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) (unused by the release's edges).
         metric_form: MetricForm => MetricForm [check::choice]
@@ -153,6 +197,29 @@ impl EdgeSettings {
             && (self.key_edge_mode == KeyEdgeMode::UaKnn
                 || self.nonkey_assign_mode == NonkeyAssignMode::ArgminSumMahalanobis)
     }
+}
+
+/// Key of the edges table's metadata holding what the optimiser needs besides the edges
+/// ([`graph_metadata`]), so that it does not depend on the provenance.
+pub const GRAPH_KEY: &str = "usplat4d.graph";
+
+/// The graph's settings the optimiser needs, as stored under [`GRAPH_KEY`]: r_xyz and the
+/// metric form of Eq. 6-8, the non-key weight sharpness λ and the length its distances are
+/// measured in (the graph's bounding-box diagonal with `scale-normalise`, else 1), the
+/// key-edge start weights, the graph scope, and where the non-keys' DQB source poses come
+/// from (their pose at t̂, `key_nodes.t_hat`, in the model).
+pub fn graph_metadata(s: &EdgeSettings, tracks: &Tracks) -> serde_json::Value {
+    let diag = diagonal(&tracks.positions);
+    let unit = if s.scale_normalise && diag > 0.0 { diag } else { 1.0 };
+    serde_json::json!({
+        "r-xyz": s.r_xyz,
+        "metric-form": s.metric_form,
+        "nonkey-weight-sharpness": s.nonkey_weight_sharpness,
+        "nonkey-distance-unit": unit,
+        "key-edge-weights": s.key_edge_weights,
+        "graph-scope": s.graph_scope,
+        "source-poses": "model pose at key_nodes.t_hat",
+    })
 }
 
 /// Errors of edge construction (inputs that disagree).
@@ -209,6 +276,17 @@ pub fn build(
     rotations: &[DMat3],
     s: &EdgeSettings,
 ) -> Result<Edges, EdgeError> {
+    build_with_report(tracks, keys, rotations, s).map(|r| r.0)
+}
+
+/// [`build`], with the number of keys that had fewer than min(k, K − 1) qualifying
+/// neighbours, and of those with none (before `key-knn-fill`).
+pub fn build_with_report(
+    tracks: &Tracks,
+    keys: &KeyNodes,
+    rotations: &[DMat3],
+    s: &EdgeSettings,
+) -> Result<(Edges, [usize; 2]), EdgeError> {
     let (n, nt) = (tracks.len(), tracks.num_frames);
     if keys.id.len() != n {
         return Err(EdgeError::KeyCount { found: keys.id.len(), expected: n });
@@ -238,8 +316,30 @@ pub fn build(
         |_, p| p,
         |tr, i, t| tr.u(i, t) < u_mask && tr.reliable(i, t),
     );
-    let metric =
+    let mut metric =
         key_frames(tracks, &key_rows, |t, p| apply(&mats[t], p), |tr, i, t| tr.reliable(i, t));
+    // scale normalisation: reliable u relative to the keys' median, distances of the non-key
+    // weights relative to the graph's extent (u = φ stays φ)
+    let (u_norm, lambda) = if s.scale_normalise {
+        let mut reliable: Vec<f32> =
+            metric.u.iter().zip(&metric.eligible).filter(|(_, e)| **e).map(|(u, _)| *u).collect();
+        let median = crate::util::stats::quantile(&mut reliable, 0.5);
+        let u_norm = if median > 0.0 && median.is_finite() { 1.0 / median } else { 1.0 };
+        for (u, e) in metric.u.iter_mut().zip(&metric.eligible) {
+            if *e {
+                *u *= u_norm;
+            }
+        }
+        let diag = diagonal(&tracks.positions);
+        // graph_metadata records the same unit
+        let scale = if diag > 0.0 { 1.0 / (diag * diag) } else { 1.0 };
+        (u_norm, s.nonkey_weight_sharpness * scale)
+    } else {
+        (1.0, s.nonkey_weight_sharpness)
+    };
+    let query_u = |i: usize, t: usize| {
+        if tracks.reliable(i, t) { tracks.u(i, t) * u_norm } else { tracks.u(i, t) }
+    };
 
     let k = s.key_knn_k;
     let neighbours: Vec<Vec<(f32, u32)>> = match s.key_edge_mode {
@@ -271,7 +371,46 @@ pub fn build(
             (0..key_rows.len()).into_par_iter().map(|a| search::knn_mean(&all, a, k)).collect()
         }
     };
+    let all_metric = KeyFrames { eligible: vec![true; metric.eligible.len()], ..metric.clone() };
     let positions = KeyFrames { eligible: vec![true; world.eligible.len()], ..world.clone() };
+    let want = k.min(key_rows.len().saturating_sub(1));
+    let short = neighbours.iter().filter(|nb| nb.len() < want).count();
+    let isolated = neighbours.iter().filter(|nb| nb.is_empty()).count();
+    let neighbours: Vec<Vec<(f32, u32)>> = neighbours
+        .into_par_iter()
+        .enumerate()
+        .map(|(a, mut nb)| {
+            if nb.len() >= want || s.key_knn_fill == KeyKnnFill::None {
+                return nb;
+            }
+            let t = keys.t_hat[key_rows[a]] as usize;
+            let others: Vec<(f32, u32)> = match (s.key_knn_fill, s.key_edge_mode) {
+                (KeyKnnFill::FirstKeys, _) | (KeyKnnFill::None, _) => (0..key_rows.len() as u32)
+                    .filter(|&l| l != a as u32)
+                    .map(|l| (f32::INFINITY, l))
+                    .collect(),
+                (KeyKnnFill::Nearest, KeyEdgeMode::UaKnn) => {
+                    let (q, u) = (all_metric.q[a * nt + t], all_metric.u[a * nt + t]);
+                    let form = Some(s.metric_form);
+                    search::knn_at_frame_brute(&all_metric, q, u, t, Some(a as u32), want, form)
+                }
+                (KeyKnnFill::Nearest, KeyEdgeMode::Euclidean | KeyEdgeMode::MaxContrib) => {
+                    let q = positions.q[a * nt + t];
+                    search::knn_at_frame_brute(&positions, q, 0.0, t, Some(a as u32), want, None)
+                }
+                (KeyKnnFill::Nearest, _) => search::knn_mean(&positions, a, want),
+            };
+            for c in others {
+                if nb.len() >= want {
+                    break;
+                }
+                if !nb.iter().any(|b| b.1 == c.1) {
+                    nb.push(c);
+                }
+            }
+            nb
+        })
+        .collect();
     let key_weights: Vec<Vec<f64>> = neighbours
         .par_iter()
         .enumerate()
@@ -295,21 +434,14 @@ pub fn build(
                 .map(|&i| {
                     let q: Vec<[f32; 3]> =
                         (0..nt).map(|t| apply(&mats[t], tracks.pos(i, t))).collect();
-                    let u: Vec<f32> = (0..nt).map(|t| tracks.u(i, t)).collect();
+                    let u: Vec<f32> = (0..nt).map(|t| query_u(i, t)).collect();
                     let th = keys.t_hat[i] as usize;
                     let cand = trees[th].nearest(q[th], 2).0;
                     match search::argmin_sum(&metric, &tree, &q, &u, &cand) {
                         Some((_, j)) => {
                             let mut dst = vec![j];
                             dst.extend(neighbours[j as usize].iter().map(|c| c.1));
-                            nonkey_weights(
-                                tracks,
-                                &positions,
-                                i,
-                                th,
-                                &dst,
-                                s.nonkey_weight_sharpness,
-                            )
+                            nonkey_weights(tracks, &positions, i, th, &dst, lambda)
                         }
                         None => Vec::new(),
                     }
@@ -338,7 +470,7 @@ pub fn build(
                         .into_iter()
                         .map(|c| c.1)
                         .collect();
-                    nonkey_weights(tracks, &positions, i, th, &dst, s.nonkey_weight_sharpness)
+                    nonkey_weights(tracks, &positions, i, th, &dst, lambda)
                 })
                 .collect()
         }
@@ -367,7 +499,38 @@ pub fn build(
             );
         }
     }
-    Ok(edges)
+    Ok((edges, [short, isolated]))
+}
+
+/// The rows of the key-node table `keys` (one per Gaussian of the uncertainty table) of the
+/// in-scope Gaussians of `scoped`, in order.
+fn keys_in_scope(keys: &KeyNodes, scoped: &ScopedTracks) -> Result<KeyNodes, EdgeError> {
+    let ids = &scoped.table_ids;
+    if keys.id.len() != ids.len() {
+        return Err(EdgeError::KeyCount { found: keys.id.len(), expected: ids.len() });
+    }
+    if let Some(row) = (0..ids.len()).find(|&i| keys.id[i] != ids[i]) {
+        return Err(EdgeError::KeyOrder { row, found: keys.id[row], expected: ids[row] });
+    }
+    let r = &scoped.table_rows;
+    Ok(KeyNodes {
+        id: r.iter().map(|&i| keys.id[i]).collect(),
+        role: r.iter().map(|&i| keys.role[i]).collect(),
+        t_hat: r.iter().map(|&i| keys.t_hat[i]).collect(),
+        significant_period: r.iter().map(|&i| keys.significant_period[i]).collect(),
+    })
+}
+
+/// Diagonal of the axis-aligned bounding box of `p`.
+fn diagonal(p: &[[f32; 3]]) -> f64 {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for q in p {
+        for k in 0..3 {
+            lo[k] = lo[k].min(q[k] as f64);
+            hi[k] = hi[k].max(q[k] as f64);
+        }
+    }
+    (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f64>().sqrt()
 }
 
 /// One key's `[T]` positions, u and eligibility.
@@ -442,12 +605,14 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
     let settings = p.resolve()?;
     let model = crate::model::Model::load(&p.model)?;
     let unc = p.uncertainty.join(crate::tables::uncertainty::UncertaintyTable::file_name());
-    let tracks = super::graph::tracks::load_tracks(&model, &unc, ctx)?;
+    let scoped = super::graph::tracks::load_tracks(&model, &unc, settings.graph_scope, ctx)?;
+    let tracks = &scoped.tracks;
     let key_path = p.keynodes.join(crate::tables::key_nodes::KeyNodesTable::file_name());
-    let keys = crate::tables::key_nodes::read(&key_path)?;
+    let keys = keys_in_scope(&crate::tables::key_nodes::read(&key_path)?, &scoped)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", key_path.display()))?;
     let rotations = match (&p.scene, settings.needs_rotations()) {
         (Some(dir), true) => {
-            super::graph::metric::train_rotations(&crate::scene::Scene::load(dir)?)
+            super::graph::metric::train_rotations(&crate::scene::Scene::load(dir)?, &model)
         }
         (None, true) => anyhow::bail!(
             "edges: the {:?} profile's anisotropic metric (r-xyz {:?}) needs the training cameras: pass --scene",
@@ -456,18 +621,22 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
         ),
         _ => Vec::new(),
     };
-    let edges = build(&tracks, &keys, &rotations, &settings)
+    let (edges, [short, isolated]) = build_with_report(tracks, &keys, &rotations, &settings)
         .map_err(|e| anyhow::anyhow!("{}: {e}", key_path.display()))?;
     ctx.info(format!(
-        "edges: {} edges ({} keys, {} Gaussians)",
+        "edges: {} edges ({} keys, {} Gaussians in the graph); {short} keys had fewer than \
+         {} qualifying neighbours, {isolated} none (key-knn-fill {:?})",
         edges.len(),
         keys.num_keys(),
-        tracks.len()
+        tracks.len(),
+        settings.key_knn_k,
+        settings.key_knn_fill
     ));
     let prov = crate::tables::Provenance::new(
         "edges",
         &serde_json::json!({ "params": p, "resolved": settings }),
-    );
+    )
+    .with_metadata(GRAPH_KEY, &graph_metadata(&settings, tracks).to_string());
     crate::tables::edges::write(
         &p.out.join(crate::tables::edges::EdgesTable::file_name()),
         &edges,
@@ -599,6 +768,13 @@ mod tests {
             (KeyEdgeMode::UaKnn, KeyEdgeMode::MinmaxDistance)
         );
         assert!(p.needs_rotations() && !r.needs_rotations());
+        // issue 15 item 7: uniform start weights in both profiles, learned by the optimiser
+        assert_eq!(
+            (p.key_edge_weights, r.key_edge_weights),
+            (KeyEdgeWeights::Uniform, KeyEdgeWeights::Uniform)
+        );
+        assert_eq!((p.key_knn_fill, r.key_knn_fill), (KeyKnnFill::Nearest, KeyKnnFill::FirstKeys));
+        assert_eq!((p.graph_scope, r.graph_scope), (GraphScope::Dynamic, GraphScope::Dynamic));
         assert_eq!((p.metric_form, r.metric_form), (MetricForm::Weight, MetricForm::Inverse));
         let base = ["--model", "m", "--uncertainty", "u", "--keynodes", "k", "--out", "o"];
         let given =
@@ -615,5 +791,104 @@ mod tests {
             "{err}"
         );
         assert!(parse_args::<EdgeParams>(&[&base[..], &["--k", "3"]].concat()).is_err());
+    }
+
+    /// Key-key neighbours of each key, by source id, in table order.
+    fn key_lists(e: &Edges) -> std::collections::BTreeMap<u32, Vec<u32>> {
+        let mut m = std::collections::BTreeMap::<u32, Vec<u32>>::new();
+        for k in (0..e.len()).filter(|&k| e.kind[k] == EdgeKind::KeyKey) {
+            m.entry(e.src[k]).or_default().push(e.dst[k]);
+        }
+        m
+    }
+
+    /// Issue 15 item 8: a key that qualifies no neighbour (release: never co-confident;
+    /// paper: no other key reliable at its t̂) got no key-key edge; now every key has
+    /// min(k, K − 1) neighbours, never itself. The release pads with the first keys in key
+    /// order (its +∞ rows), the paper with the nearest keys at t̂ in its metric.
+    #[test]
+    fn no_key_is_left_without_neighbours() {
+        // release: the first three keys are never confident
+        let (mut tracks, rotations, keys) = setup(Profile::Release);
+        let key_rows = keys.rows(Role::Key);
+        let nt = tracks.num_frames;
+        for &i in &key_rows[..3] {
+            for t in 0..nt {
+                tracks.u[i * nt + t] = 1e8;
+                tracks.reliable[i * nt + t] = false;
+            }
+        }
+        let s = EdgeSettings { contrib_threshold: 1.0, ..EdgeSettings::defaults(Profile::Release) };
+        let none = EdgeSettings { key_knn_fill: KeyKnnFill::None, ..s.clone() };
+        let (e, [short, isolated]) = build_with_report(&tracks, &keys, &rotations, &none).unwrap();
+        assert!(short >= 3 && isolated >= 3, "{short} {isolated}");
+        assert_eq!(key_lists(&e).len(), key_rows.len() - 3, "isolated keys have no edge");
+        let (e, report) = build_with_report(&tracks, &keys, &rotations, &s).unwrap();
+        assert_eq!(report, [short, isolated]);
+        let lists = key_lists(&e);
+        let want = s.key_knn_k.min(key_rows.len() - 1);
+        assert_eq!(lists.len(), key_rows.len());
+        for (src, l) in &lists {
+            assert_eq!(l.len(), want, "key {src}");
+            assert!(!l.contains(src), "key {src} is its own neighbour");
+        }
+        let id = |a: usize| tracks.ids[key_rows[a]];
+        let first: Vec<u32> = (1..=want).map(id).collect();
+        assert_eq!(lists[&id(0)], first, "padded with the first keys in key order");
+        // paper: no other key reliable at key 0's t̂
+        let (mut tracks, rotations, mut keys) = setup(Profile::Paper);
+        let key_rows = keys.rows(Role::Key);
+        let t0 = keys.t_hat[key_rows[0]] as usize;
+        for &i in &key_rows[1..] {
+            tracks.u[i * nt + t0] = 1e8;
+            tracks.reliable[i * nt + t0] = false;
+            if keys.t_hat[i] as usize == t0 {
+                keys.t_hat[i] = ((t0 + 1) % nt) as u32;
+            }
+        }
+        let s = EdgeSettings::defaults(Profile::Paper);
+        let none = EdgeSettings { key_knn_fill: KeyKnnFill::None, ..s.clone() };
+        let e = build(&tracks, &keys, &rotations, &none).unwrap();
+        assert!(!key_lists(&e).contains_key(&tracks.ids[key_rows[0]]));
+        let (e, [short, isolated]) = build_with_report(&tracks, &keys, &rotations, &s).unwrap();
+        assert!(short >= 1 && isolated >= 1, "{short} {isolated}");
+        let l = &key_lists(&e)[&tracks.ids[key_rows[0]]];
+        assert_eq!(l.len(), s.key_knn_k);
+        assert!(!l.contains(&tracks.ids[key_rows[0]]));
+    }
+
+    /// Issue 15 item 6: a scene scaled by 10 and rendered at twice the resolution (u =
+    /// 1/Σ(Tα)² divided by 4 where measured, φ unchanged) gives the paper profile the same
+    /// keys and edges; without the normalisation (`scale-normalise false`, the behaviour
+    /// before) the non-key weights change.
+    #[test]
+    fn scale_and_resolution_do_not_change_the_paper_graph() {
+        let (tracks, rotations, _) = synthetic_tracks(1500, 16, 3, 9);
+        let mut scaled = tracks.clone();
+        for p in &mut scaled.positions {
+            *p = p.map(|v| v * 10.0);
+        }
+        for (u, r) in scaled.u.iter_mut().zip(&scaled.reliable) {
+            if *r {
+                *u /= 4.0;
+            }
+        }
+        let ks = KeynodeSettings::defaults(Profile::Paper);
+        let (k1, k2) = (select(&tracks, &ks), select(&scaled, &ks));
+        assert_eq!(k1, k2);
+        assert!(k1.num_keys() >= 10, "{} keys", k1.num_keys());
+        let s = EdgeSettings::defaults(Profile::Paper);
+        let e1 = build(&tracks, &k1, &rotations, &s).unwrap();
+        let e2 = build(&scaled, &k2, &rotations, &s).unwrap();
+        assert_eq!((&e1.src, &e1.dst), (&e2.src, &e2.dst));
+        let dw = e1.weight.iter().zip(&e2.weight).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+        assert!(dw < 1e-4, "weights differ by {dw}");
+        let raw = EdgeSettings { scale_normalise: false, ..s };
+        let (r1, r2) =
+            (build(&tracks, &k1, &rotations, &raw), build(&scaled, &k2, &rotations, &raw));
+        let (r1, r2) = (r1.unwrap(), r2.unwrap());
+        let same =
+            r1.dst == r2.dst && r1.weight.iter().zip(&r2.weight).all(|(a, b)| (a - b).abs() < 1e-4);
+        assert!(!same, "raw units should depend on the scale");
     }
 }

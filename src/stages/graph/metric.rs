@@ -2,9 +2,10 @@
 
 use glam::{DMat3, Mat3, Vec3};
 
-/// World-to-camera rotation R_cw of the training camera of each frame `[T]`.
-pub fn train_rotations(scene: &crate::scene::Scene) -> Vec<DMat3> {
-    scene.train_by_frame().iter().map(|c| c.rotation()).collect()
+/// World-to-camera rotation R_cw of the camera that renders each training frame `[T]`
+/// (the model's own camera when it carries cameras, [`crate::model::Model::training_camera`]).
+pub fn train_rotations(scene: &crate::scene::Scene, model: &crate::model::Model) -> Vec<DMat3> {
+    scene.train_by_frame().iter().map(|c| model.training_camera(c).rotation()).collect()
 }
 
 /// The anisotropic uncertainty of Eq. 6: U_{i,t} = R_wc diag(r_x u, r_y u, r_z u) R_wcᵀ,

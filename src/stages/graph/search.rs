@@ -220,24 +220,38 @@ pub fn knn_at_frame(
 
 /// Eq. 8's cost Σ_t s(‖q_t − q_{l,t}‖, √(u_t + u_{l,t})) of key `l` for a query trajectory
 /// (`q` `[T]`, `u` `[T]`) in the metric `form`, over all frames; stops early once the
-/// partial sum exceeds `stop`.
+/// partial sum exceeds `stop`. Terms and sum are in f64 (issue 15 item 5): in f32, where
+/// the query is unseen (u_t = φ = 1e8) φ + u_{l,t} rounds to φ for any u_{l,t} below 4, so
+/// the key's reliability at those frames was lost, and those frames, weighted by √φ,
+/// dominate the sum; f64 keeps u_{l,t} there (φ + 0.01 is exact to 10⁻⁸).
 pub fn sum_cost(
     kf: &KeyFrames,
     q: &[[f32; 3]],
     u: &[f32],
     l: usize,
-    stop: f32,
+    stop: f64,
     form: MetricForm,
-) -> f32 {
-    let mut s = 0.0f32;
+) -> f64 {
+    let mut s = 0.0f64;
     for t in 0..kf.num_frames {
         let i = kf.at(l, t);
-        s += form.scale(dist2(q[t], kf.q[i]).sqrt(), (u[t] + kf.u[i]).sqrt());
+        let d = (dist2(q[t], kf.q[i]) as f64).sqrt();
+        let v = (u[t] as f64 + kf.u[i] as f64).sqrt();
+        s += match form {
+            MetricForm::Weight => d * v,
+            MetricForm::Inverse => d / v,
+        };
         if s > stop {
             break;
         }
     }
     s
+}
+
+/// The total order of (Eq. 8 cost, key) pairs.
+#[inline]
+fn lt64(a: (f64, u32), b: (f64, u32)) -> bool {
+    a.0 < b.0 || (a.0 == b.0 && a.1 < b.1)
 }
 
 /// Brute-force reference of [`argmin_sum`]: `(cost, key)` of the lowest Eq. 8 cost.
@@ -246,11 +260,11 @@ pub fn argmin_sum_brute(
     q: &[[f32; 3]],
     u: &[f32],
     form: MetricForm,
-) -> Option<(f32, u32)> {
-    let mut best: Option<(f32, u32)> = None;
+) -> Option<(f64, u32)> {
+    let mut best: Option<(f64, u32)> = None;
     for l in 0..kf.num_keys {
-        let c = (sum_cost(kf, q, u, l, f32::INFINITY, form), l as u32);
-        if best.is_none_or(|b| lt(c, b)) {
+        let c = (sum_cost(kf, q, u, l, f64::INFINITY, form), l as u32);
+        if best.is_none_or(|b| lt64(c, b)) {
             best = Some(c);
         }
     }
@@ -517,12 +531,12 @@ pub fn argmin_sum(
     q: &[[f32; 3]],
     u: &[f32],
     candidates: &[u32],
-) -> Option<(f32, u32)> {
+) -> Option<(f64, u32)> {
     let form = tree.form;
-    let mut best: Option<(f32, u32)> = None;
+    let mut best: Option<(f64, u32)> = None;
     for &l in candidates {
-        let c = (sum_cost(kf, q, u, l as usize, best.map_or(f32::INFINITY, |b| b.0), form), l);
-        if best.is_none_or(|b| lt(c, b)) {
+        let c = (sum_cost(kf, q, u, l as usize, best.map_or(f64::INFINITY, |b| b.0), form), l);
+        if best.is_none_or(|b| lt64(c, b)) {
             best = Some(c);
         }
     }
@@ -537,7 +551,8 @@ pub fn argmin_sum(
         .collect();
     let mut chunks: Vec<u32> = (0..weight.len() as u32).collect();
     chunks.sort_by(|&a, &b| weight[b as usize].total_cmp(&weight[a as usize]).then(a.cmp(&b)));
-    let stop = |best: Option<(f32, u32)>| best.map_or(f32::INFINITY, |b| b.0);
+    // the f32 bounds prune against the f64 best cost rounded to f32 (the margin covers it)
+    let stop = |best: Option<(f64, u32)>| best.map_or(f32::INFINITY, |b| b.0 as f32);
     let mut queue = std::collections::BinaryHeap::new();
     if let Some(b) = tree.bound(0, &query, &chunks, stop(best)) {
         queue.push(Pending(b, 0));
@@ -558,12 +573,12 @@ pub fn argmin_sum(
             None => {
                 for &l in &tree.order[node.start as usize..node.end as usize] {
                     if let Some((stop, _)) = best
-                        && tree.key_exceeds(l as usize, &query, &chunks, stop)
+                        && tree.key_exceeds(l as usize, &query, &chunks, stop as f32)
                     {
                         continue;
                     }
-                    let c = (sum_cost(kf, q, u, l as usize, f32::INFINITY, form), l);
-                    if best.is_none_or(|b| lt(c, b)) {
+                    let c = (sum_cost(kf, q, u, l as usize, f64::INFINITY, form), l);
+                    if best.is_none_or(|b| lt64(c, b)) {
                         best = Some(c);
                     }
                 }
@@ -851,11 +866,11 @@ mod tests {
         assert_eq!(got, vec![(2.0, 0), (2.0, 1)]);
         assert_eq!(
             argmin_sum(&kf, &key_tree(&kf, 1, MetricForm::Inverse), &[[0.0; 3]], &[1.0], &[2]),
-            Some((1.0 / 2f32.sqrt(), 0))
+            Some((1.0 / 2f64.sqrt(), 0))
         );
         assert_eq!(
             argmin_sum(&kf, &key_tree(&kf, 1, MetricForm::Weight), &[[0.0; 3]], &[1.0], &[2]),
-            Some((2f32.sqrt(), 0))
+            Some((2f64.sqrt(), 0))
         );
     }
 
@@ -880,6 +895,38 @@ mod tests {
             let brute = argmin_sum_brute(&kf, &q, &u, form).unwrap();
             assert_eq!(brute.1, want, "{form:?}");
             assert_eq!(argmin_sum(&kf, &key_tree(&kf, 1, form), &q, &u, &[]), Some(brute));
+        }
+    }
+
+    /// Issue 15 item 5: where the query is unseen (u = φ = 1e8), f32 rounds φ + u_l to φ
+    /// for u_l below 4. Two keys at the same place, equally reliable where the query is
+    /// seen, differ only in their reliability (u 3 vs 0.01) at the frames where it is not:
+    /// in f32 their sums tie and the lower index (the less reliable key) won; in f64 the
+    /// more reliable key does, in the brute force and the tree search alike.
+    #[test]
+    fn eq8_keeps_the_keys_reliability_where_the_query_is_unseen() {
+        let nt = 6;
+        let unseen = |t: usize| t >= 2;
+        let mut kf = KeyFrames { num_keys: 2, num_frames: nt, ..Default::default() };
+        for l in 0..2 {
+            for t in 0..nt {
+                kf.q.push([1.0, 0.0, 0.0]);
+                kf.u.push(match (unseen(t), l) {
+                    (true, 0) => 3.0,
+                    (true, _) => 0.01,
+                    (false, _) => 0.1,
+                });
+                kf.eligible.push(true);
+            }
+        }
+        assert_eq!(1e8f32 + 3.0, 1e8f32 + 0.01, "the f32 rounding this test is about");
+        let q = vec![[0.0; 3]; nt];
+        let u: Vec<f32> = (0..nt).map(|t| if unseen(t) { 1e8 } else { 0.1 }).collect();
+        let brute = argmin_sum_brute(&kf, &q, &u, MetricForm::Weight).unwrap();
+        assert_eq!(brute.1, 1, "{brute:?}");
+        for cand in [&[][..], &[0], &[0, 1]] {
+            let tree = key_tree(&kf, 1, MetricForm::Weight);
+            assert_eq!(argmin_sum(&kf, &tree, &q, &u, cand), Some(brute), "{cand:?}");
         }
     }
 }

@@ -71,12 +71,40 @@ impl Tracks {
     }
 }
 
-/// Load the tracks of the Gaussians of `uncertainty_file` from `model`, frame by frame.
+/// Which Gaussians the graph stages (`keynodes`, `edges`) take as nodes (issue 15 item 1).
+/// `uncertainty` renders every Gaussian either way, so a static background still occludes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GraphScope {
+    /// The dynamic Gaussians (both profiles, as the release, which builds its graph on the
+    /// foreground model only): a large, well-observed static background would otherwise fill
+    /// the confident pool and the key budget, and dynamic non-keys would follow static keys.
+    Dynamic,
+    /// Every Gaussian of the uncertainty table.
+    All,
+}
+
+/// The tracks of the Gaussians in a [`GraphScope`], and where they sit in the uncertainty
+/// table.
+#[derive(Debug, Clone)]
+pub struct ScopedTracks {
+    /// The in-scope Gaussians' tracks.
+    pub tracks: Tracks,
+    /// `gaussian_id` of every row of the uncertainty table `[N_table]`.
+    pub table_ids: Vec<u32>,
+    /// Row in the uncertainty table of each in-scope Gaussian `[N]`, ascending.
+    pub table_rows: Vec<usize>,
+}
+
+/// Load the tracks of the Gaussians of `uncertainty_file` in `scope` from `model`, frame by
+/// frame. The table lists every Gaussian of the model or (release `scope dynamic-only`) its
+/// dynamic ones.
 pub fn load_tracks(
     model: &Model,
     uncertainty_file: &Path,
+    scope: GraphScope,
     ctx: &crate::context::Context,
-) -> anyhow::Result<Tracks> {
+) -> anyhow::Result<ScopedTracks> {
     let unc = UncertaintyReader::open(uncertainty_file)?;
     let nt = unc.num_frames();
     if nt != model.num_frames() {
@@ -87,9 +115,11 @@ pub fn load_tracks(
             model.num_frames()
         );
     }
-    if unc.ids().len() != model.gaussians.len() {
+    let num_dynamic = model.gaussians.dynamic.iter().filter(|d| **d).count();
+    if unc.ids().len() != model.gaussians.len() && unc.ids().len() != num_dynamic {
         anyhow::bail!(
-            "{}: {} rows per frame, expected one per Gaussian of the model {} ({})",
+            "{}: {} rows per frame, expected one per Gaussian of the model {} ({}) or one per \
+             dynamic Gaussian ({num_dynamic})",
             uncertainty_file.display(),
             unc.ids().len(),
             model.dir.display(),
@@ -112,9 +142,13 @@ pub fn load_tracks(
             })
         })
         .collect::<anyhow::Result<_>>()?;
+    let table_rows: Vec<usize> = (0..rows.len())
+        .filter(|&r| scope == GraphScope::All || model.gaussians.dynamic[rows[r]])
+        .collect();
+    let rows: Vec<usize> = table_rows.iter().map(|&r| rows[r]).collect();
     let n = rows.len();
     let mut tracks = Tracks {
-        ids: unc.ids().to_vec(),
+        ids: table_rows.iter().map(|&r| unc.ids()[r]).collect(),
         num_frames: nt,
         positions: vec![[0.0; 3]; n * nt],
         u: vec![0.0; n * nt],
@@ -124,15 +158,15 @@ pub fn load_tracks(
     for t in 0..nt {
         let state = model.frame(t)?;
         let f = unc.frame(t)?;
-        for (i, &row) in rows.iter().enumerate() {
+        for (i, (&row, &r)) in rows.iter().zip(&table_rows).enumerate() {
             tracks.positions[i * nt + t] = state.position[row];
-            tracks.u[i * nt + t] = f.u[i];
-            tracks.reliable[i * nt + t] = f.converged[i] && f.n_pixels[i] > 0;
+            tracks.u[i * nt + t] = f.u[r];
+            tracks.reliable[i * nt + t] = f.converged[r] && f.n_pixels[r] > 0;
         }
         bar.inc(1);
     }
     bar.finish_and_clear();
-    Ok(tracks)
+    Ok(ScopedTracks { tracks, table_ids: unc.ids().to_vec(), table_rows })
 }
 
 /// A synthetic scene of `groups` rigid blobs: the tracks, the training cameras' R_cw `[T]`
@@ -234,11 +268,13 @@ mod tests {
             .unwrap();
         }
         w.finish().unwrap();
-        let err = load_tracks(&model, &path, &crate::context::Context::quiet()).unwrap_err();
+        let err = load_tracks(&model, &path, GraphScope::All, &crate::context::Context::quiet())
+            .unwrap_err();
         assert_eq!(
             err.to_string(),
             format!(
-                "{}: 10 rows per frame, expected one per Gaussian of the model {} (576)",
+                "{}: 10 rows per frame, expected one per Gaussian of the model {} (576) or one \
+                 per dynamic Gaussian (576)",
                 path.display(),
                 model_dir.display()
             )

@@ -1,7 +1,10 @@
 //! Key-node selection (paper Sec. 4.2, "Key node selection"; official-release.md Sec. 3 and
 //! Sec. 4.2 "Candidate filtering").
 //!
-//! Two stages, streamed frame by frame with O(N) state:
+//! The graph's Gaussians are those in `graph-scope` (dynamic by default in both profiles:
+//! a well-observed static background would otherwise fill the confident pool and the key
+//! budget); the others are listed as `unlinked`. Two stages, streamed frame by frame with
+//! O(N) state:
 //! 1. *Candidate sampling via 3D gridization.* At each frame t the confident set is the
 //!    `candidates-per-frame` Gaussians of lowest u_{i,t} (paper: the top 2%; release: the
 //!    top 1000). Their positions are binned into a voxel grid; voxels holding no confident
@@ -64,7 +67,7 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
-use super::graph::tracks::Tracks;
+use super::graph::tracks::{GraphScope, ScopedTracks, Tracks};
 use super::params::{Amount, check};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -246,6 +249,9 @@ crate::stage_params! {
         out: PathBuf,
     }
     params {
+        /// Gaussians that may be keys or non-keys (dynamic, all); the others are `unlinked`.
+        graph_scope: GraphScope => GraphScope [check::choice]
+            { paper "dynamic", release "dynamic", row "3", heading "Method" },
         /// Confident Gaussians per frame: a count or a percentage of N.
         candidates_per_frame: Amount => Amount [check::share]
             { paper "2%", release "1000", row "18", heading "Method" },
@@ -623,6 +629,25 @@ fn frame_candidates(
     }
 }
 
+/// The key-node table over every Gaussian of the uncertainty table: the selection `keys` of
+/// the in-scope Gaussians, and the role `unlinked` (t̂ = 0, significant period 0) for the
+/// others (outside the graph scope: rendered, in the model, no edges).
+fn in_table(keys: KeyNodes, scoped: &ScopedTracks) -> KeyNodes {
+    let n = scoped.table_ids.len();
+    let mut out = KeyNodes {
+        id: scoped.table_ids.clone(),
+        role: vec![Role::Unlinked; n],
+        t_hat: vec![0; n],
+        significant_period: vec![0; n],
+    };
+    for (i, &r) in scoped.table_rows.iter().enumerate() {
+        out.role[r] = keys.role[i];
+        out.t_hat[r] = keys.t_hat[i];
+        out.significant_period[r] = keys.significant_period[i];
+    }
+    out
+}
+
 /// Diagonal of the axis-aligned bounding box of `p`.
 fn bbox_diagonal(p: &[[f32; 3]]) -> f64 {
     let mut lo = [f64::INFINITY; 3];
@@ -645,12 +670,16 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
     let unc = p
         .uncertainty
         .join(<crate::tables::uncertainty::UncertaintyTable as crate::tables::Table>::file_name());
-    let tracks = super::graph::tracks::load_tracks(&model, &unc, ctx)?;
-    let (keys, report) = select_with_report(&tracks, &settings);
+    let scoped = super::graph::tracks::load_tracks(&model, &unc, settings.graph_scope, ctx)?;
+    let tracks = &scoped.tracks;
+    let (keys, mut report) = select_with_report(tracks, &settings);
+    let keys = in_table(keys, &scoped);
+    report.roles = Role::ALL.map(|r| keys.count(r));
     let [n_key, n_nonkey, n_unlinked, n_culled] = report.roles;
     ctx.info(format!(
         "keynodes: {n_key} key nodes of {} Gaussians ({} frames), voxel edge {}{}; \
-         {n_nonkey} non-keys in the graph, {n_unlinked} unlinked, {n_culled} culled",
+         {n_nonkey} non-keys in the graph, {n_unlinked} unlinked ({} outside the graph \
+         scope), {n_culled} culled",
         tracks.len(),
         tracks.num_frames,
         report.voxel_size,
@@ -661,6 +690,7 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
             ),
             None => String::new(),
         },
+        scoped.table_ids.len() - tracks.len(),
     ));
     if n_key == 0 {
         ctx.warn(format!(

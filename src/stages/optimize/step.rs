@@ -9,13 +9,12 @@
 //! It also accumulates, per Gaussian, the norm of the screen-space position gradient in NDC
 //! units (pixels · W/2, H/2, per view, as 3DGS and gsplat do) that density control uses.
 
-use std::path::Path;
-
 use super::image_loss::track::{
     Track, add_target_position_grads, interval_weight, tracks_between, write_target_features,
 };
 use super::image_loss::{FrameTargets, ImageLossWeights, TrackForm, TrackSet, rgb_loss};
 use super::state::{StateGrads, TrainState, sigmoid};
+use crate::model::Model;
 use crate::render::{
     ColorSource, Cutoff, DifferentiableRenderer, RenderCamera, RenderSettings, ShFrame, SplatInputs,
 };
@@ -26,6 +25,8 @@ use crate::tables::tracks_2d::Tracks2dReader;
 pub struct TrainingViews {
     /// `[T]` the scene's training cameras, index t is frame t.
     cameras: Vec<Camera>,
+    /// `[T]` the cameras that render them (the model's own when it has them).
+    render_cameras: Vec<Camera>,
     /// The scene directory the cameras' paths are relative to.
     scene: Scene,
     /// The scene's 2D tracks in the training camera, if it has them.
@@ -44,9 +45,10 @@ pub struct FrameTruth {
 }
 
 impl TrainingViews {
-    /// The training views of `scene` (T must equal the model's frame count) and its
+    /// The training views of `scene` rendered with `model`'s cameras
+    /// ([`Model::training_camera`]; T must equal the model's frame count) and its
     /// `tracks_2d.parquet` when present.
-    pub fn new(scene: &Scene) -> anyhow::Result<Self> {
+    pub fn new(scene: &Scene, model: &Model) -> anyhow::Result<Self> {
         let tracks_path = scene.dir.join("tracks_2d.parquet");
         let tracks =
             if tracks_path.exists() { Some(Tracks2dReader::open(&tracks_path)?) } else { None };
@@ -61,7 +63,8 @@ impl TrainingViews {
                 cameras.len()
             );
         }
-        Ok(TrainingViews { cameras, scene: scene.clone(), tracks })
+        let render_cameras = cameras.iter().map(|c| model.training_camera(c)).collect();
+        Ok(TrainingViews { cameras, render_cameras, scene: scene.clone(), tracks })
     }
 
     /// Number of frames T.
@@ -74,17 +77,17 @@ impl TrainingViews {
         self.cameras.is_empty()
     }
 
-    /// The camera that renders training frame `t`: the scene's training camera of that frame.
-    /// (A model that carries its own cameras would supply them here.)
+    /// The camera that renders training frame `t`: the model's own camera of that frame
+    /// when it carries cameras, else the scene's training camera.
     pub fn training_camera(&self, t: usize) -> RenderCamera {
-        RenderCamera::from(&self.cameras[t])
+        RenderCamera::from(&self.render_cameras[t])
     }
 
     /// Ground truth of frame `t` (colour over `background`, mask, depth); errors name the file.
     pub fn truth(&self, t: usize, background: [f32; 3]) -> anyhow::Result<FrameTruth> {
         let cam = &self.cameras[t];
         let (w, h) = (cam.width as usize, cam.height as usize);
-        let rgb = load_rgb(&self.scene.resolve(&cam.image_path), cam, background)?;
+        let rgb = load_rgb(&self.scene, cam, background)?;
         let mask = match &cam.mask_path {
             Some(m) => {
                 let path = self.scene.resolve(m);
@@ -129,8 +132,9 @@ impl TrainingViews {
     }
 }
 
-fn load_rgb(path: &Path, cam: &Camera, background: [f32; 3]) -> anyhow::Result<Vec<f32>> {
-    let img = crate::formats::png::read_png(path)?.rgb_over(background);
+fn load_rgb(scene: &Scene, cam: &Camera, background: [f32; 3]) -> anyhow::Result<Vec<f32>> {
+    let path = &scene.resolve(&cam.image_path);
+    let img = scene.ground_truth_rgb(cam, background)?;
     if img.width != cam.width as usize || img.height != cam.height as usize {
         anyhow::bail!(
             "{}: image is {}x{}, the camera of frame {} says {}x{}",

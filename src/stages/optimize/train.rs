@@ -239,7 +239,7 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     let s = p.resolve()?;
     let model = Model::load(&p.model)?;
     let scene = Scene::load(&p.scene)?;
-    let views = TrainingViews::new(&scene)?;
+    let views = TrainingViews::new(&scene, &model)?;
     if views.len() != model.num_frames() {
         anyhow::bail!(
             "{}: {} training frames, but the model {} has {}",

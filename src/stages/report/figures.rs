@@ -80,7 +80,8 @@ pub fn render_colored(
 ) -> anyhow::Result<Image> {
     let state = model.frame(frame)?;
     let inputs = SplatInputs { colors: ColorSource::Rgb(colors), ..model.splat_inputs(&state) };
-    let out = CpuRenderer.render(&RenderCamera::from(cam), &inputs, &RenderSettings::default())?;
+    let cam = RenderCamera::from(&model.render_camera(cam));
+    let out = CpuRenderer.render(&cam, &inputs, &RenderSettings::default())?;
     Ok(Image { width: out.width, height: out.height, channels: 3, data: out.color })
 }
 

@@ -1,14 +1,19 @@
 //! Dynamic uncertainty estimation (paper Sec. 4.1, Eqs. 3-5; official-release.md Sec. 2).
 //!
 //! For every training frame t the whole model (static and dynamic Gaussians, so occlusion
-//! counts) is rendered from the training camera of frame t over a white background. Then:
+//! counts) is rendered from the training camera of frame t (the model's own camera when it
+//! carries cameras) over a white background, and compared with the ground truth read as the
+//! scene's alpha mode says (coverage: over white; DyCheck: plain RGB). Then:
 //! - Eq. 3: σ²_{i,t} = 1 / Σ_{h ∈ Ω_{i,t}} (T^h_{i,t} α_i)², from the renderer's per-Gaussian
 //!   `sum_w2`;
 //! - Eq. 4: the per-pixel indicator 𝟙_t(h) = [‖C̄^h − C^h‖₁ < η_c] against the ground truth
 //!   composited over white (channels summed, paper; or averaged, release);
 //! - Eq. 5: u_{i,t} = σ²_{i,t} when the Gaussian's indicator holds, φ otherwise (and for
-//!   Gaussians that touch no pixel). The paper's indicator is the product over all covered
-//!   pixels; the release tests only the pixel under the projected centre, ANDed with its
+//!   Gaussians that touch no pixel). The paper's indicator is the product over the covered
+//!   pixels, here those where the Gaussian's blending weight T·α is at least
+//!   `cover-min-weight` (0: every pixel it touches, the literal reading; the paper profile's
+//!   default is a measured choice, see README "Deliberate readings"); the release tests only
+//!   the pixel under the projected centre, ANDed with its
 //!   extra gates at that pixel: SSIM > 0.01 in all channels (11×11 Gaussian window,
 //!   σ 1.5), Sobel magnitude of the prior depth below its 90th percentile over the
 //!   foreground mask, and the foreground mask itself. The depth gate needs the scene's
@@ -88,6 +93,10 @@ crate::stage_params! {
         /// Pixels tested (all-covered-pixels, centre-pixel).
         gate: Gate => Gate [check::choice]
             { paper "all-covered-pixels", release "centre-pixel", row "4", heading "Method" },
+        /// Covered pixels of the all-covered-pixels test: those where the Gaussian's
+        /// blending weight T·α is at least this, in [0, 1]; 0 for every pixel it touches.
+        cover_min_weight: f32 => Option<f32> [check::fraction]
+            { paper "0.5", release "0", row "4", heading "Method" },
         /// Channel reduction of the L1 error (sum, mean).
         channel_reduce: ChannelReduce => ChannelReduce [check::choice]
             { paper "sum", release "mean", row "6", heading "Method" },
@@ -249,9 +258,10 @@ pub fn frame_work<R: DifferentiableRenderer>(
     let (w, h) = (out.width, out.height);
     let mut pass = pixel_pass(&out.color, truth.rgb, s.eta_c, s.channel_reduce);
     apply_gates(&mut pass, &out.color, truth.rgb, truth.depth, truth.mask, (w, h), s);
-    let test = match s.gate {
-        Gate::AllCoveredPixels => ConvergenceTest::AllCoveredPixels,
-        Gate::CentrePixel => ConvergenceTest::CentrePixel,
+    let test = match (s.gate, s.cover_min_weight) {
+        (Gate::AllCoveredPixels, None) => ConvergenceTest::AllCoveredPixels,
+        (Gate::AllCoveredPixels, Some(m)) => ConvergenceTest::WeightedPixels(m),
+        (Gate::CentrePixel, _) => ConvergenceTest::CentrePixel,
     };
     let indicator = renderer.convergence_saved(camera, settings, &saved, &pass, test)?;
     Ok(frame_uncertainty(t, &out.aux, &indicator, rows, s.phi))
@@ -341,7 +351,7 @@ pub fn run(p: &UncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
             ));
         }
         let truth = loaded.view();
-        let camera = RenderCamera::from(*cam);
+        let camera = RenderCamera::from(&model.training_camera(cam));
         let frame = frame_work(&renderer, t as u32, &camera, &inputs, &settings, &truth, &rows, &s)
             .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
         frames.push(frame);
