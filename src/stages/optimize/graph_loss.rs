@@ -1064,6 +1064,11 @@ mod tests {
             let smooth = part(&mut || {
                 obj.smoothness(&p0, &mut g);
             });
+            let gather = part(&mut || {
+                let all: Vec<u32> = keys.iter().chain(&nonkeys).copied().collect();
+                motion::stream_frames(&p0, &all, 2, &mut g, |_, _| [0.0]);
+            });
+            eprintln!("  streaming alone (gather + scatter) {gather:.0} ms");
             let dqb_ms = part(&mut || {
                 obj.dqb_terms(&p0, &frames, &mut g);
             });

@@ -124,15 +124,27 @@ impl TrackGrad {
     /// gathered) and the track's global frames.
     pub fn scatter(&self, track: &Track, nodes: &[u32], n: usize, grads: &mut PoseGrads) {
         for t in 0..track.frames {
-            for (k, &i) in nodes.iter().enumerate() {
-                let (gp, gq) = (self.position(t, k), self.rotation(track, t, k));
-                let o = (track.start + t) * n + i as usize;
-                for c in 0..3 {
-                    grads.position[o][c] += gp[c] as f32;
-                }
-                for c in 0..4 {
-                    grads.rotation[o][c] += gq[c] as f32;
-                }
+            let (a, b) = ((track.start + t) * n, (track.start + t + 1) * n);
+            self.add_frame(track, nodes, t, &mut grads.position[a..b], &mut grads.rotation[a..b]);
+        }
+    }
+
+    /// Add local frame `t`'s gradients into one frame's rows `[n]` of positions and rotations.
+    fn add_frame(
+        &self,
+        track: &Track,
+        nodes: &[u32],
+        t: usize,
+        position: &mut [[f32; 3]],
+        rotation: &mut [[f32; 4]],
+    ) {
+        for (k, &i) in nodes.iter().enumerate() {
+            let (gp, gq) = (self.position(t, k), self.rotation(track, t, k));
+            for c in 0..3 {
+                position[i as usize][c] += gp[c] as f32;
+            }
+            for c in 0..4 {
+                rotation[i as usize][c] += gq[c] as f32;
             }
         }
     }
@@ -147,8 +159,9 @@ const WAVE_ROWS: usize = 1 << 20;
 
 /// Evaluate `f` (which returns K term values and adds its gradients into the [`TrackGrad`])
 /// on the Gaussians `nodes` of `poses`, one block of frames at a time: each block holds its
-/// frames plus `context` frames before them (terms coupling t−Δ..t need Δ ≤ `context`), and
-/// its gradients are added into `grads` in block order, as are the values. Memory is a few
+/// frames plus `context` frames before them (terms coupling t−Δ..t need Δ ≤ `context`); its
+/// gradients are added into `grads` (its own frames in parallel, they are disjoint, then its
+/// context frames in block order) and its values in block order. Memory is a few
 /// blocks, not `[T, m]`; the block layout depends on T and m only, so the result does not
 /// depend on the number of threads.
 pub fn stream_frames<const K: usize>(
@@ -190,8 +203,28 @@ fn stream_frames_in<const K: usize>(
                 (tr, g, v)
             })
             .collect();
-        for (tr, g, v) in parts {
-            g.scatter(&tr, nodes, poses.n, grads);
+        // Each block's own frames are disjoint: added in parallel over frames; then the
+        // context frames, in block order.
+        let owner = |f: usize| {
+            parts.iter().position(|(tr, _, _)| f >= tr.start + tr.first && f < tr.start + tr.frames)
+        };
+        grads
+            .position
+            .par_chunks_mut(poses.n)
+            .zip(grads.rotation.par_chunks_mut(poses.n))
+            .enumerate()
+            .for_each(|(f, (gp, gq))| {
+                if let Some(b) = owner(f) {
+                    let (tr, g, _) = &parts[b];
+                    g.add_frame(tr, nodes, f - tr.start, gp, gq);
+                }
+            });
+        for (tr, g, v) in &parts {
+            for t in 0..tr.first {
+                let f = tr.start + t;
+                let (a, b) = (f * poses.n, (f + 1) * poses.n);
+                g.add_frame(tr, nodes, t, &mut grads.position[a..b], &mut grads.rotation[a..b]);
+            }
             for (t, x) in total.iter_mut().zip(v) {
                 *t += x;
             }
