@@ -6,11 +6,11 @@
 //! dict should have been set"); encodings other than PLAIN, RLE and dictionary (corrupt
 //! BYTE_STREAM_SPLIT and DELTA pages panic; no writer of our tables uses them); level
 //! sections longer than the page (V2 lengths and V1 BIT_PACKED levels are sliced unchecked);
-//! a PLAIN byte-array page with no values but value bytes (a division by zero); and RLE /
-//! bit-packed hybrid runs whose header is not a canonical varint of at most 5 bytes (a run
-//! header of 11 bytes overflows a shift) or whose values run past the end of their section
-//! (the packed definition-level decoder slices out of bounds). Writers (ours, pyarrow) never
-//! produce any of these.
+//! a PLAIN byte-array data or dictionary page with no values but value bytes (a division by
+//! zero); and RLE / bit-packed hybrid runs whose header is not a canonical varint of at most
+//! 5 bytes (a run header of 11 bytes overflows a shift) or whose values run past the end of
+//! their section (the packed definition-level decoder slices out of bounds). Writers (ours,
+//! pyarrow) never produce any of these.
 
 use bytes::Bytes;
 use parquet::basic::{Encoding, Type as PhysicalType};
@@ -36,7 +36,16 @@ impl<P: PageReader> CheckedPages<P> {
         let corrupt = |msg: String| Err(ParquetError::General(format!("corrupt page: {msg}")));
         let Some(p) = &page else { return Ok(page) };
         let encoding = match p {
-            Page::DictionaryPage { .. } => {
+            Page::DictionaryPage { buf, num_values, .. } => {
+                if *num_values == 0
+                    && !buf.is_empty()
+                    && self.descr.physical_type() == PhysicalType::BYTE_ARRAY
+                {
+                    return corrupt(format!(
+                        "a byte-array dictionary of no values but {} bytes",
+                        buf.len()
+                    ));
+                }
                 self.dictionary = true;
                 return Ok(page);
             }
