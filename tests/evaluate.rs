@@ -292,7 +292,7 @@ fn tracking_scores_oracle_and_offset_model() {
     let renders = d.join("R");
     ok(run(&crate::util::render_eval_args(&oracle, &scene, &renders)));
     let score = |model: &Path, out: &Path| -> serde_json::Value {
-        let o = evaluate(&renders, &scene, &out, &["--model", s(model)]);
+        let o = evaluate(&renders, &scene, out, &["--model", s(model)]);
         let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         assert!(stdout.contains("| EPE | PCK@5% | PCK@10% |"), "{stdout}");

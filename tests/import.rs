@@ -260,7 +260,7 @@ fn mosca_dual_quaternion_helpers_equal_golden() {
         .flat_map(|(r, t)| dqb::from_rt(q4::from_rotmat(r), [t[0], t[1], t[2]]))
         .collect();
     check(&dq, &floats(&g, "Rt2dq"), 1e-10, "Rt2dq");
-    let q: Vec<f64> = r.iter().flat_map(|r| q4::from_rotmat(r)).collect();
+    let q: Vec<f64> = r.iter().flat_map(q4::from_rotmat).collect();
     check(&q, &floats(&g, "matrix_to_quaternion_of_R"), 1e-10, "matrix_to_quaternion");
     let blend = vecs("dq_blend", 8);
     let (mut rr, mut tt, mut unit) = (Vec::new(), Vec::new(), Vec::new());

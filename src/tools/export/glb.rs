@@ -102,10 +102,10 @@ pub fn encode(s: &Splats, name: &str) -> Vec<u8> {
         "accessors": accessors,
     });
     let mut json_bytes = doc.to_string().into_bytes();
-    while json_bytes.len() % 4 != 0 {
+    while !json_bytes.len().is_multiple_of(4) {
         json_bytes.push(b' ');
     }
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let total = 12 + 8 + json_bytes.len() + 8 + bin.len();
