@@ -114,6 +114,9 @@ pub enum Command {
     Inspect(crate::tools::inspect::InspectParams),
     /// Validate a model or scene directory completely (every frame, every file).
     Check(crate::tools::check::CheckParams),
+    /// A model's frames as files Gaussian-splat viewers open (3DGS PLY, glTF).
+    #[command(subcommand)]
+    Export(crate::tools::export::ExportCommand),
 }
 
 /// `usplat4d import ...`
@@ -165,6 +168,8 @@ impl Command {
             Command::Pipeline(_) => "pipeline",
             Command::Inspect(_) => "inspect",
             Command::Check(_) => "check",
+            Command::Export(crate::tools::export::ExportCommand::Ply(_)) => "export ply",
+            Command::Export(crate::tools::export::ExportCommand::Gltf(_)) => "export gltf",
         }
     }
 }
@@ -199,6 +204,7 @@ pub fn dispatch(command: Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Pipeline(c) => pipeline::run_command(&c, &mut InProcess { ctx: ctx.clone() }, ctx),
         Command::Inspect(p) => tools::inspect::run(&p, ctx),
         Command::Check(p) => tools::check::run(&p, ctx),
+        Command::Export(c) => tools::export::run_command(&c, ctx),
     }
 }
 

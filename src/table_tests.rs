@@ -335,6 +335,29 @@ fn corrupted_parquet_is_an_error_in_every_reader() {
     }
 }
 
+/// The files on which `fuzzed_tables_never_panic` found a panic (`tests/fuzz_crashes/`, one
+/// per fault; each panicked inside parquet-rs before its check in `tables::pages`) are errors
+/// naming the file in every reader.
+#[test]
+fn fuzz_crashes_are_errors_in_every_reader() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_crashes");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
+        .collect();
+    files.sort();
+    assert!(!files.is_empty());
+    for f in &files {
+        let results = std::panic::catch_unwind(|| read_with_every_reader(f))
+            .unwrap_or_else(|_| panic!("a reader panicked on {}", f.display()));
+        for (reader, result) in results {
+            let msg = result.unwrap_or_else(|| panic!("{reader} accepted {}", f.display()));
+            assert!(msg.starts_with(&format!("{}: ", f.display())), "{reader}: {msg}");
+        }
+    }
+}
+
 /// Fuzz target of the table readers: valid tables (dictionary-encoded, compressed) with
 /// bytes flipped, runs overwritten (often in the footer) or cut short, read by every reader;
 /// none may panic. `USPLAT4D_FUZZ_ITERS` mutations (default 2000, what CI runs),
@@ -344,14 +367,8 @@ fn fuzzed_tables_never_panic() {
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<u64>().ok());
     let iters = env("USPLAT4D_FUZZ_ITERS").unwrap_or(2000);
     let seconds = env("USPLAT4D_FUZZ_SECONDS");
-    let mut state = env("USPLAT4D_FUZZ_SEED").unwrap_or(1);
-    let mut next = move || {
-        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    };
+    let mut rng = crate::util::rng::Rng::from_state(env("USPLAT4D_FUZZ_SEED").unwrap_or(1));
+    let mut next = move || rng.next_u64();
     let dir = tempfile::tempdir().unwrap();
     let scene = Scene { dir: dir.path().join("s"), cameras: sample_cameras() };
     scene.save(&Provenance::default()).unwrap();

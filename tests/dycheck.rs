@@ -7,34 +7,67 @@
 //! keypoints (the shared paper-windmill files have none).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use serde_json::Value;
 
 use crate::util::copy_dir;
 use usplat4d::context::Context;
-use usplat4d::datasets::dycheck::{read_camera_path, write_layout};
+use usplat4d::datasets::dycheck::{DycheckCamera, read_camera_path, write_layout};
 use usplat4d::formats::{self, png::Image};
-use usplat4d::scene::{Camera, Scene};
+use usplat4d::scene::{Camera, Scene, Split};
+
+use crate::util::code_and_stderr as usplat4d;
 
 /// The paper-windmill camera files, if shared/data is reachable.
 fn windmill() -> Option<PathBuf> {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let found = ["../../shared/data", "../shared/data"]
-        .iter()
-        .map(|r| root.join(r).join("real/dycheck-paper-windmill-cameras"))
-        .find(|p| p.join("splits/train.json").exists());
+    let found = crate::util::shared_data("real/dycheck-paper-windmill-cameras")
+        .filter(|p| p.join("splits/train.json").exists());
     if found.is_none() {
         eprintln!("SKIP: ../shared/data/real/dycheck-paper-windmill-cameras not found");
     }
     found
 }
 
-/// Run the binary; returns (exit code, stderr).
-fn usplat4d(args: &[&str]) -> (i32, String) {
-    let out =
-        Command::new(env!("CARGO_BIN_EXE_usplat4d")).args(args).output().expect("run usplat4d");
-    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
+#[test]
+fn windmill_camera_path_at_factor_2() {
+    let Some(dir) = windmill() else { return };
+    let cams = read_camera_path(&dir, 2).unwrap();
+    let train: Vec<&Camera> = cams.iter().filter(|c| c.split == Split::Train).collect();
+    let eval: Vec<&Camera> = cams.iter().filter(|c| c.split == Split::Eval).collect();
+    assert_eq!((train.len(), eval.len()), (277, 419));
+    assert_eq!(eval.iter().filter(|c| c.camera == "1").count(), 219);
+    assert_eq!(eval.iter().filter(|c| c.camera == "2").count(), 200);
+    for (t, c) in train.iter().enumerate() {
+        assert_eq!((c.frame, c.camera.as_str()), (t as u32, "0"));
+    }
+    let c2 = cams.iter().find(|c| c.camera == "2" && c.frame == 77).unwrap();
+    assert_eq!(c2.image_path, "rgb/2/00077.png");
+    assert_eq!(c2.mask_path.as_deref(), Some("mask/2/00077.png"));
+    assert_eq!(train[3].depth_path.as_deref(), Some("depth/0/00003.npy"));
+    for c in &cams {
+        assert_eq!((c.width, c.height), (360, 480));
+        assert_eq!(c.distortion, None);
+        let r = c.rotation();
+        let dev = (r * r.transpose() - glam::DMat3::IDENTITY).to_cols_array();
+        assert!(dev.iter().all(|x| x.abs() < 1e-6), "{dev:?}");
+        assert!((r.determinant() - 1.0).abs() < 1e-6);
+    }
+    let raw = DycheckCamera::read(&dir.join("camera/1_00000.json"), None).unwrap();
+    let c1 = cams.iter().find(|c| c.camera == "1" && c.frame == 0).unwrap();
+    assert_eq!((c1.fx, c1.fy), (raw.focal_length / 2.0, raw.focal_length / 2.0));
+    assert_eq!((c1.cx, c1.cy), (raw.principal_point[0] / 2.0, raw.principal_point[1] / 2.0));
+    assert!((c1.center() - glam::DVec3::from_array(raw.position)).length() < 1e-9);
+}
+
+#[test]
+fn factor_too_large_for_the_image_is_an_error() {
+    let Some(dir) = windmill() else { return };
+    let err = read_camera_path(&dir, 2000).unwrap_err();
+    let want = format!(
+        "{}: key 'image_size': [720, 960] at factor 2000 rounds to an empty image",
+        dir.join("camera/0_00000.json").display()
+    );
+    assert_eq!(err.to_string(), want);
 }
 
 fn import(data: &Path, out: &Path, extra: &[&str]) -> (i32, String) {
@@ -507,7 +540,7 @@ fn arc_trajectory(dir: &Path, t: u32) {
 /// `evaluate --model` scores of `model` on `scene` (renders of its eval views in `renders`):
 /// the `pck_t` entry of summary.json, and stdout.
 fn pck_t(scene: &Path, renders: &Path, model: &Path, out: &Path) -> (Value, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
+    let o = crate::util::bin()
         .args(["evaluate", "--lpips", "off", "--renders", s(renders), "--scene", s(scene)])
         .args(["--model", s(model), "--out", s(out)])
         .output()
@@ -581,18 +614,8 @@ fn pck_t_of_synthetic_dycheck_keypoints() {
     assert_eq!(frames["0_00006"], 6);
     let renders = d.join("R");
     let oracle = synth.join("oracle");
-    let (code, err) = usplat4d(&[
-        "render",
-        "--model",
-        s(&oracle),
-        "--scene",
-        s(&scene),
-        "--split",
-        "eval",
-        "--out",
-        s(&renders),
-        "--quiet",
-    ]);
+    let render = crate::util::render_eval_args(&oracle, &scene, &renders);
+    let (code, err) = usplat4d(&[&render[..], &["--quiet"]].concat());
     assert_eq!((code, err.as_str()), (0, ""));
     let (good, stdout) = pck_t(&scene, &renders, &oracle, &d.join("E"));
     assert!(

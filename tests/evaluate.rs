@@ -5,7 +5,9 @@
 //! values (unit-tested against golden values in `metrics::lpips`).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+use crate::util::bin;
 
 use usplat4d::formats::png::{Image, read_png, write_png};
 use usplat4d::scene::{Camera, Scene, Split};
@@ -14,12 +16,14 @@ use usplat4d::tables::Provenance;
 const W: usize = 40;
 const H: usize = 36;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_usplat4d"))
-}
-
 fn run(args: &[&str]) -> Output {
     bin().arg("--quiet").args(args).output().expect("run usplat4d")
+}
+
+/// `usplat4d --quiet evaluate --renders R --scene S --out O --lpips off EXTRA...`.
+fn evaluate(renders: &Path, scene: &Path, out: &Path, extra: &[&str]) -> Output {
+    let args = ["evaluate", "--renders", s(renders), "--scene", s(scene), "--out", s(out)];
+    run(&[&args[..], &["--lpips", "off"], extra].concat())
 }
 
 fn camera(name: &str, frame: u32, split: Split, angle: Option<f32>, mask: bool) -> Camera {
@@ -124,19 +128,7 @@ fn synthetic() -> Setup {
 #[test]
 fn evaluate_prints_view_ranges_and_writes_outputs() {
     let t = synthetic();
-    let o = run(&[
-        "evaluate",
-        "--renders",
-        s(&t.renders),
-        "--scene",
-        s(&t.scene),
-        "--out",
-        s(&t.out),
-        "--method",
-        "perturbed",
-        "--lpips",
-        "off",
-    ]);
+    let o = evaluate(&t.renders, &t.scene, &t.out, &["--method", "perturbed"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8(o.stdout).unwrap();
     assert!(
@@ -192,17 +184,7 @@ fn missing_render_names_the_file() {
     let t = synthetic();
     let missing = t.renders.join("rgb/cam03/00001.png");
     std::fs::remove_file(&missing).unwrap();
-    let o = run(&[
-        "evaluate",
-        "--renders",
-        s(&t.renders),
-        "--scene",
-        s(&t.scene),
-        "--out",
-        s(&t.out),
-        "--lpips",
-        "off",
-    ]);
+    let o = evaluate(&t.renders, &t.scene, &t.out, &[]);
     assert_eq!(o.status.code(), Some(2));
     assert_eq!(
         String::from_utf8(o.stderr).unwrap(),
@@ -214,38 +196,16 @@ fn missing_render_names_the_file() {
 #[test]
 fn fail_below_exits_1_and_compare_prints_differences() {
     let t = synthetic();
-    let o = run(&[
-        "evaluate",
-        "--renders",
-        s(&t.renders),
-        "--scene",
-        s(&t.scene),
-        "--out",
-        s(&t.out),
-        "--method",
-        "a",
-        "--lpips",
-        "off",
-    ]);
+    let o = evaluate(&t.renders, &t.scene, &t.out, &["--method", "a"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     // Worse renders (every image perturbed) as method b.
     let renders_b = t.renders.with_file_name("renders_b");
     make_renders(&t.scene, &renders_b, &t.cams, 0.4, false);
     let out_b = t.out.with_file_name("eval_b");
-    let args_b = [
-        "evaluate",
-        "--renders",
-        s(&renders_b),
-        "--scene",
-        s(&t.scene),
-        "--out",
-        s(&out_b),
-        "--method",
-        "b",
-        "--lpips",
-        "off",
-    ];
-    let o = run(&[&args_b[..], &["--fail-below", "100"]].concat());
+    let eval_b = |extra: &[&str]| {
+        evaluate(&renders_b, &t.scene, &out_b, &[&["--method", "b"], extra].concat())
+    };
+    let o = eval_b(&["--fail-below", "100"]);
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8(o.stderr).unwrap();
     assert!(
@@ -253,7 +213,7 @@ fn fail_below_exits_1_and_compare_prints_differences() {
             && err.ends_with(" dB of 'b' on 'scene' is below --fail-below 100\n"),
         "{err}"
     );
-    let o = run(&[&args_b[..], &["--fail-below", "5"]].concat());
+    let o = eval_b(&["--fail-below", "5"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let o = run(&["evaluate", "--compare", s(&t.out), s(&out_b.join("metrics.parquet"))]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -286,17 +246,7 @@ fn masked_protocol_for_cameras_without_offsets() {
         write_png(&renders.join(&c.image_path), &img).unwrap();
     }
     let out = tmp.path().join("e");
-    let o = run(&[
-        "evaluate",
-        "--renders",
-        s(&renders),
-        "--scene",
-        s(&scene),
-        "--out",
-        s(&out),
-        "--lpips",
-        "off",
-    ]);
+    let o = evaluate(&renders, &scene, &out, &[]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8(o.stdout).unwrap();
     assert!(stdout.contains("| views | images | mPSNR | mSSIM | mLPIPS |"), "{stdout}");
@@ -304,19 +254,7 @@ fn masked_protocol_for_cameras_without_offsets() {
     let rows = usplat4d::tables::metrics::read(&out.join("metrics.parquet")).unwrap();
     assert!(rows.iter().all(|r| r.masked && r.psnr == f64::INFINITY), "{rows:?}");
     // Without masks the same renders are imperfect.
-    let o = run(&[
-        "evaluate",
-        "--renders",
-        s(&renders),
-        "--scene",
-        s(&scene),
-        "--out",
-        s(&out),
-        "--lpips",
-        "off",
-        "--masks",
-        "never",
-    ]);
+    let o = evaluate(&renders, &scene, &out, &["--masks", "never"]);
     assert!(o.status.success());
     let rows = usplat4d::tables::metrics::read(&out.join("metrics.parquet")).unwrap();
     assert!(rows.iter().all(|r| !r.masked && r.psnr < 20.0), "{rows:?}");
@@ -352,31 +290,9 @@ fn tracking_scores_oracle_and_offset_model() {
         "64",
     ]));
     let renders = d.join("R");
-    ok(run(&[
-        "render",
-        "--model",
-        s(&oracle),
-        "--scene",
-        s(&scene),
-        "--split",
-        "eval",
-        "--out",
-        s(&renders),
-    ]));
+    ok(run(&crate::util::render_eval_args(&oracle, &scene, &renders)));
     let score = |model: &Path, out: &Path| -> serde_json::Value {
-        let o = run(&[
-            "evaluate",
-            "--renders",
-            s(&renders),
-            "--scene",
-            s(&scene),
-            "--model",
-            s(model),
-            "--out",
-            s(out),
-            "--lpips",
-            "off",
-        ]);
+        let o = evaluate(&renders, &scene, out, &["--model", s(model)]);
         let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         assert!(stdout.contains("| EPE | PCK@5% | PCK@10% |"), "{stdout}");
@@ -410,17 +326,7 @@ fn tracking_scores_oracle_and_offset_model() {
     assert!(bad_epe > epe + 0.2 * diag && bad_pck10 < 0.2, "offset: {bad} oracle: {good}");
 
     // Without --model the summary has no tracking entry.
-    ok(run(&[
-        "evaluate",
-        "--renders",
-        s(&renders),
-        "--scene",
-        s(&scene),
-        "--out",
-        s(&d.join("E3")),
-        "--lpips",
-        "off",
-    ]));
+    ok(evaluate(&renders, &scene, &d.join("E3"), &[]));
     let plain = std::fs::read_to_string(d.join("E3/summary.json")).unwrap();
     assert!(!plain.contains("tracking"), "{plain}");
 }

@@ -4,7 +4,6 @@
 //! convergence flags exact. Without a GPU adapter: `SKIP gpu: no adapter`.
 
 use std::path::Path;
-use std::process::Command;
 
 use usplat4d::datasets::demo::write_demo_scene;
 use usplat4d::tables::uncertainty::UncertaintyReader;
@@ -12,11 +11,7 @@ use usplat4d::tables::uncertainty::UncertaintyReader;
 /// Run `usplat4d --quiet --device <device> args...`; `None` (after a SKIP line) when the GPU
 /// run fails for want of an adapter.
 fn run(device: &str, args: &[&std::ffi::OsStr]) -> Option<()> {
-    let out = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
-        .args(["--quiet", "--device", device])
-        .args(args)
-        .output()
-        .unwrap();
+    let out = crate::util::bin().args(["--quiet", "--device", device]).args(args).output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     if device == "gpu" && stderr.contains("no GPU adapter found") {
         eprintln!("SKIP gpu: no adapter");

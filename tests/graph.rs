@@ -6,7 +6,6 @@
 //! parts are unit-tested in `src/stages/uncertainty.rs`).
 
 use std::path::Path;
-use std::process::Command;
 
 use usplat4d::model::{FrameState, Gaussians, Model};
 use usplat4d::stages::graph::spectral::adjusted_rand_index;
@@ -91,8 +90,7 @@ fn write_inputs(dir: &Path, tr: &Tracks) {
 }
 
 fn usplat4d(dir: &Path, args: &[&str]) -> String {
-    let out =
-        Command::new(env!("CARGO_BIN_EXE_usplat4d")).current_dir(dir).args(args).output().unwrap();
+    let out = crate::util::bin().current_dir(dir).args(args).output().unwrap();
     let text =
         format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "usplat4d {args:?} failed:\n{text}");
@@ -168,7 +166,7 @@ fn edges_name_the_missing_scene() {
     let (tr, _) = two_objects(1);
     write_inputs(dir.path(), &tr);
     usplat4d(dir.path(), &["keynodes", "--model", "model", "--uncertainty", "unc", "--out", "kn"]);
-    let out = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
+    let out = crate::util::bin()
         .current_dir(dir.path())
         .args([
             "edges",

@@ -18,7 +18,8 @@ use usplat4d::formats::torch::Checkpoint;
 use usplat4d::import::BaseModel;
 use usplat4d::import::mosca::{self, Mosca};
 use usplat4d::import::som::Som;
-use usplat4d::math::rotmat;
+use usplat4d::math::dqb;
+use usplat4d::math::quat64 as q4;
 
 use crate::util::{Dir, shared_data};
 
@@ -175,7 +176,7 @@ fn mosca_logdir_equals_mosca() {
     let e = load_npz(&d.join("mosca_expected.npz"));
     let (t_count, n) = (m.num_frames(), m.leaves.len());
     assert_eq!((t_count, n, m.m), (6, 48, 32));
-    let flatm = |r: &rotmat::Mat3| r.iter().flatten().copied().collect::<Vec<f64>>();
+    let flatm = |r: &q4::M3| r.iter().flatten().copied().collect::<Vec<f64>>();
     // Intermediates: reference poses, skinning, dyn_o, node sigma.
     let xyz_ref: Vec<f64> = m.leaves.iter().flat_map(|l| l.xyz_ref).collect();
     check(&xyz_ref, &floats(&e, "dyn_xyz_ref"), 1e-5, "dyn_xyz_ref");
@@ -216,7 +217,7 @@ fn mosca_logdir_equals_mosca() {
     check(&m.dynamic.sph, &floats(&e, "dyn_sph"), 0.0, "dyn_sph");
     let st_xyz: Vec<f64> = m.st_xyz.iter().flatten().copied().collect();
     check(&st_xyz, &floats(&e, "st_xyz"), 0.0, "st_xyz");
-    let st_r: Vec<f64> = m.st_quat.iter().flat_map(|q| flatm(&rotmat::quat_to_mat(*q))).collect();
+    let st_r: Vec<f64> = m.st_quat.iter().flat_map(|q| flatm(&q4::quat_to_mat(*q))).collect();
     check(&st_r, &floats(&e, "st_R"), 1e-6, "st_R");
     let st_s: Vec<f64> = m.st.scales.iter().flatten().copied().collect();
     check(&st_s, &floats(&e, "st_scales"), 1e-6, "st_scales");
@@ -243,7 +244,7 @@ fn mosca_logdir_equals_mosca() {
 fn mosca_dual_quaternion_helpers_equal_golden() {
     let Some(d) = fixtures("mosca") else { return };
     let g = load_npz(&d.join("mosca_dualquat_golden.npz"));
-    let mats = |k: &str| -> Vec<rotmat::Mat3> {
+    let mats = |k: &str| -> Vec<q4::M3> {
         floats(&g, k)
             .chunks_exact(9)
             .map(|c| std::array::from_fn(|i| std::array::from_fn(|j| c[i * 3 + j])))
@@ -253,17 +254,20 @@ fn mosca_dual_quaternion_helpers_equal_golden() {
         floats(&g, k).chunks_exact(w).map(|c| c.to_vec()).collect()
     };
     let (r, t) = (mats("R"), vecs("t", 3));
-    let dq: Vec<f64> =
-        r.iter().zip(&t).flat_map(|(r, t)| mosca::rt_to_dq(*r, [t[0], t[1], t[2]])).collect();
+    let dq: Vec<f64> = r
+        .iter()
+        .zip(&t)
+        .flat_map(|(r, t)| dqb::from_rt(q4::from_rotmat(r), [t[0], t[1], t[2]]))
+        .collect();
     check(&dq, &floats(&g, "Rt2dq"), 1e-10, "Rt2dq");
-    let q: Vec<f64> = r.iter().flat_map(|r| rotmat::mat_to_quat_pytorch3d(*r)).collect();
+    let q: Vec<f64> = r.iter().flat_map(q4::from_rotmat).collect();
     check(&q, &floats(&g, "matrix_to_quaternion_of_R"), 1e-10, "matrix_to_quaternion");
     let blend = vecs("dq_blend", 8);
     let (mut rr, mut tt, mut unit) = (Vec::new(), Vec::new(), Vec::new());
     for b in &blend {
-        let u = mosca::dq_to_unit(std::array::from_fn(|i| b[i]));
+        let u = dqb::unit(&std::array::from_fn(|i| b[i]));
         unit.extend(u);
-        let (r, t) = mosca::dq_to_rt(u);
+        let (r, t) = dqb::to_rt(&u);
         rr.extend(r.iter().flatten());
         tt.extend(t);
     }
@@ -273,17 +277,13 @@ fn mosca_dual_quaternion_helpers_equal_golden() {
     let prod: Vec<f64> = a
         .iter()
         .zip(&b)
-        .flat_map(|(a, b)| {
-            rotmat::qmul(std::array::from_fn(|i| a[i]), std::array::from_fn(|i| b[i]))
-        })
+        .flat_map(|(a, b)| q4::mul(std::array::from_fn(|i| a[i]), std::array::from_fn(|i| b[i])))
         .collect();
     check(&prod, &floats(&g, "quaternion_multiply"), 1e-12, "quaternion_multiply");
     let r2: Vec<f64> = a
         .iter()
         .flat_map(|a| {
-            rotmat::quat_to_mat(rotmat::normalize4(std::array::from_fn(|i| a[i])))
-                .into_iter()
-                .flatten()
+            q4::quat_to_mat(q4::normalize4(std::array::from_fn(|i| a[i]))).into_iter().flatten()
         })
         .collect();
     check(&r2, &floats(&g, "q2R_of_qa"), 1e-12, "q2R");

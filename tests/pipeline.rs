@@ -9,8 +9,6 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-const BIN: &str = env!("CARGO_BIN_EXE_usplat4d");
-
 /// A temp dir holding `p.yaml` (and a copy of the glTF model when asked).
 struct Dir {
     tmp: tempfile::TempDir,
@@ -38,7 +36,7 @@ impl Dir {
     /// Run `usplat4d pipeline ARGS... p.yaml EXTRA...` from another directory (checks that
     /// paths are relative to the YAML); returns (success, stdout, stderr).
     fn pipeline(&self, sub: &str, extra: &[&str]) -> (bool, String, String) {
-        let out = Command::new(BIN)
+        let out = crate::util::bin()
             .args(["pipeline", sub])
             .arg(self.path("p.yaml"))
             .args(extra)
@@ -182,7 +180,7 @@ fn a_run_killed_mid_stage_redoes_that_stage_and_keeps_finished_ones() {
             return;
         }
     }
-    let mut child = Command::new(BIN)
+    let mut child = crate::util::bin()
         .args(["pipeline", "run"])
         .arg(d.path("p.yaml"))
         .stdout(Stdio::piped())

@@ -1,7 +1,5 @@
 //! `usplat4d render` through the real binary on the hand-made demo scene.
 
-use std::process::Command;
-
 use usplat4d::datasets::demo::write_demo_scene;
 
 #[test]
@@ -9,7 +7,7 @@ fn render_cli_writes_every_image_of_a_split_and_a_manifest() {
     let dir = tempfile::tempdir().unwrap();
     let (scene, model) = write_demo_scene(dir.path(), 2).unwrap();
     let out = dir.path().join("renders");
-    let status = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
+    let status = crate::util::bin()
         .args(["--quiet", "render", "--split", "all", "--alpha-max", "0.999", "--depth"])
         .arg("--model")
         .arg(&model)
@@ -38,7 +36,7 @@ fn render_cli_names_the_missing_model_file() {
     let dir = tempfile::tempdir().unwrap();
     let (scene, _) = write_demo_scene(dir.path(), 1).unwrap();
     let missing = dir.path().join("nope");
-    let output = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
+    let output = crate::util::bin()
         .args(["render", "--model"])
         .arg(&missing)
         .arg("--scene")

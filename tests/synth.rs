@@ -2,7 +2,6 @@
 //! complete, consistent scenes at a tiny size; bad inputs give exact error messages.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use usplat4d::formats::{npy::read_npy_f32, png::read_png};
 use usplat4d::model::Model;
@@ -14,21 +13,9 @@ fn fox() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/data/Fox.glb")
 }
 
-/// `../shared/data` from /work/main or a worktree in /work/wt/NAME, if present.
-fn shared_data() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    [root.join("../shared/data"), root.join("../../shared/data")].into_iter().find(|p| p.is_dir())
-}
-
 /// Run `usplat4d -q synth ARGS`; returns (exit code, stderr).
 fn synth(args: &[&str]) -> (i32, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_usplat4d"))
-        .arg("-q")
-        .arg("synth")
-        .args(args)
-        .output()
-        .unwrap();
-    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
+    crate::util::code_and_stderr(&[&["-q", "synth"], args].concat())
 }
 
 const TINY: [&str; 12] = [
@@ -142,7 +129,7 @@ fn embedded_fox_tiny_scene() {
 
 #[test]
 fn shared_simple_skin_tiny_scene() {
-    let Some(data) = shared_data() else {
+    let Some(data) = crate::util::shared_data("") else {
         eprintln!("SKIP shared_simple_skin_tiny_scene: ../shared/data not found");
         return;
     };

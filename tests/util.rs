@@ -3,6 +3,23 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+/// The `usplat4d` binary under test, as a command to add arguments to.
+pub fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_usplat4d"))
+}
+
+/// Run `usplat4d args...` in the current directory; returns (exit code, stderr).
+pub fn code_and_stderr<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> (i32, String) {
+    let out = bin().args(args).output().expect("spawn usplat4d");
+    (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+/// The arguments of `render --model MODEL --scene SCENE --split eval --out OUT`.
+pub fn render_eval_args<'a>(model: &'a Path, scene: &'a Path, out: &'a Path) -> [&'a str; 9] {
+    let s = |p: &'a Path| p.to_str().expect("UTF-8 path");
+    ["render", "--model", s(model), "--scene", s(scene), "--split", "eval", "--out", s(out)]
+}
+
 /// A temporary working directory that runs `usplat4d` commands.
 pub struct Dir {
     tmp: tempfile::TempDir,
@@ -26,7 +43,7 @@ impl Dir {
 
     /// A `usplat4d` command with this directory as working directory.
     pub fn command(&self, args: &[&str]) -> Command {
-        let mut c = Command::new(env!("CARGO_BIN_EXE_usplat4d"));
+        let mut c = bin();
         c.args(args).current_dir(self.path());
         c
     }

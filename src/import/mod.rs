@@ -18,7 +18,7 @@ use std::path::Path;
 use rayon::prelude::*;
 
 use crate::context::Context;
-use crate::math::rotmat::{self, Mat3};
+use crate::math::quat64::{self as q4, M3};
 use crate::model::{FrameState, Gaussians, Model, SH_FRAME_KEY};
 use crate::render::ShFrame;
 use crate::scene::{Camera, Scene};
@@ -120,7 +120,7 @@ pub fn align_to_scene(
     Ok((cams, sim))
 }
 
-fn rot_of(w2c: &[f64; 16]) -> Mat3 {
+fn rot_of(w2c: &[f64; 16]) -> M3 {
     std::array::from_fn(|i| std::array::from_fn(|j| w2c[i * 4 + j]))
 }
 
@@ -138,17 +138,16 @@ pub fn fit_similarity(scene: &[&Camera], model: &[ModelCamera]) -> (Similarity, 
     let mut qsum = [0.0; 4];
     let mut first: Option<[f64; 4]> = None;
     for i in 0..n {
-        let r = rotmat::matmul(transpose(rot_of(&model[i].w2c)), rot_of(&scene[i].w2c));
-        let mut q = rotmat::mat_to_quat_pytorch3d(r);
+        let r = q4::matmul(transpose(rot_of(&model[i].w2c)), rot_of(&scene[i].w2c));
+        let mut q = q4::from_rotmat(&r);
         let f = *first.get_or_insert(q);
         if (0..4).map(|k| q[k] * f[k]).sum::<f64>() < 0.0 {
             q = q.map(|x| -x);
         }
         (0..4).for_each(|k| qsum[k] += q[k]);
     }
-    let rot =
-        rotmat::quat_to_mat(rotmat::normalize4(if n == 0 { [1.0, 0.0, 0.0, 0.0] } else { qsum }));
-    let a: Vec<[f64; 3]> = (0..n).map(|i| rotmat::matvec(rot, center_of(&scene[i].w2c))).collect();
+    let rot = q4::quat_to_mat(q4::normalize4(if n == 0 { [1.0, 0.0, 0.0, 0.0] } else { qsum }));
+    let a: Vec<[f64; 3]> = (0..n).map(|i| q4::mat_vec(&rot, center_of(&scene[i].w2c))).collect();
     let b: Vec<[f64; 3]> = (0..n).map(|i| center_of(&model[i].w2c)).collect();
     let mean = |v: &[[f64; 3]]| -> [f64; 3] {
         std::array::from_fn(|k| v.iter().map(|x| x[k]).sum::<f64>() / v.len().max(1) as f64)
@@ -184,7 +183,7 @@ pub fn fit_similarity(scene: &[&Camera], model: &[ModelCamera]) -> (Similarity, 
         .max(1e-12);
     for i in 0..n {
         let mapped = sim.w2c_to_model(&scene[i].w2c);
-        let r = rotmat::matmul(transpose(rot_of(&mapped)), rot_of(&model[i].w2c));
+        let r = q4::matmul(transpose(rot_of(&mapped)), rot_of(&model[i].w2c));
         let cos = ((r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
         max_deg = max_deg.max(cos.acos().to_degrees());
         let c = center_of(&mapped);
@@ -208,7 +207,7 @@ pub fn fit_similarity(scene: &[&Camera], model: &[ModelCamera]) -> (Similarity, 
     (sim, report.join("\n"))
 }
 
-fn transpose(m: Mat3) -> Mat3 {
+fn transpose(m: M3) -> M3 {
     std::array::from_fn(|i| std::array::from_fn(|j| m[j][i]))
 }
 
@@ -246,13 +245,13 @@ mod tests {
     fn similarity_is_recovered_from_cameras() {
         let truth = Similarity {
             scale: 0.4,
-            rotation: rotmat::quat_to_mat(rotmat::normalize4([0.9, 0.1, -0.3, 0.2])),
+            rotation: q4::quat_to_mat(q4::normalize4([0.9, 0.1, -0.3, 0.2])),
             translation: [1.0, -2.0, 0.5],
             source: String::new(),
         };
         let scene: Vec<Camera> = (0..5)
             .map(|t| {
-                let r = rotmat::quat_to_mat(rotmat::normalize4([1.0, 0.05 * t as f64, 0.1, 0.0]));
+                let r = q4::quat_to_mat(q4::normalize4([1.0, 0.05 * t as f64, 0.1, 0.0]));
                 let mut w = [0.0; 16];
                 for i in 0..3 {
                     for j in 0..3 {

@@ -16,25 +16,25 @@
 //! with `dynamic = false`. Cameras: `T_cw = T_wc⁻¹` and `K(H, W)` at the scene's image size
 //! (MoSca's `default_H × default_W` without a scene). All in f64 from the stored values.
 //!
-//! The DQB forward here mirrors `lib_mosca/scaffold_utils/dualquat_helper.py`; the
-//! optimiser's differentiable DQB lives in `math::dqb`.
+//! The DQB forward is `math::dqb` (`lib_mosca/scaffold_utils/dualquat_helper.py`), the one
+//! the optimiser differentiates.
 
 use std::path::{Path, PathBuf};
 
 use crate::context::Context;
 use crate::formats::torch::{Checkpoint, Dim, Dims, Error as CkptError};
-use crate::math::rotmat::{self, Mat3};
+use crate::math::dqb;
+use crate::math::quat64::{self as q4, M3};
 use crate::model::Gaussians;
 use crate::render::ShFrame;
 use crate::tables::Provenance;
 use crate::tables::model_cameras::{ModelCamera, Similarity};
 
 use super::{BaseModel, Poses, par_map};
+use crate::render::sh::C0;
 
 /// `lib_mosca/mosca.py::DQ_EPS`.
 pub const DQ_EPS: f64 = 0.001;
-/// Degree-0 SH constant (`RGB2SH`).
-const C0: f64 = 0.282_094_791_773_878_14;
 
 /// Parameters of `usplat4d import mosca`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
@@ -80,7 +80,7 @@ pub struct Leaf {
     /// World position at r, `[3]`.
     pub xyz_ref: [f64; 3],
     /// World rotation at r.
-    pub r_ref: Mat3,
+    pub r_ref: M3,
     /// Skinning nodes (`topo_knn_ind[attach_ind]`) `[K]`, up to 32.
     pub sk_ind: [usize; 32],
     /// Normalised skinning weights `[K]`.
@@ -103,7 +103,7 @@ pub struct Mosca {
     /// `scf._node_xyz` `[T, M, 3]`.
     pub node_xyz: Vec<[f64; 3]>,
     /// `q2R(scf._node_rotation)` `[T, M]`.
-    pub node_r: Vec<Mat3>,
+    pub node_r: Vec<M3>,
     /// `max_sigma·sigmoid(_node_sigma_logit)` `[M]`.
     pub node_sigma: Vec<f64>,
     /// 0 = DQB, 1 = LBS.
@@ -132,8 +132,8 @@ fn sigmoid(x: f64) -> f64 {
     1.0 / (1.0 + (-x).exp())
 }
 
-fn q2r(q: [f64; 4]) -> Mat3 {
-    rotmat::quat_to_mat(rotmat::normalize4(q))
+fn q2r(q: [f64; 4]) -> M3 {
+    q4::quat_to_mat(q4::normalize4(q))
 }
 
 fn rows<const W: usize>(v: &[f64]) -> Vec<[f64; W]> {
@@ -311,7 +311,7 @@ impl Mosca {
             ));
         }
         let node_xyz = rows::<3>(&node_xyz);
-        let node_r: Vec<Mat3> = rows::<4>(&node_rot).into_iter().map(q2r).collect();
+        let node_r: Vec<M3> = rows::<4>(&node_rot).into_iter().map(q2r).collect();
         let node_sigma: Vec<f64> = logit.iter().map(|l| max_sigma * sigmoid(*l)).collect();
         // Leaves.
         let xyz = floats(d, "_xyz", &[Dim::Named("N"), Dim::Is(3)], &mut dims)?;
@@ -343,9 +343,9 @@ impl Mosca {
                 let rl = q2r([rot[n * 4], rot[n * 4 + 1], rot[n * 4 + 2], rot[n * 4 + 3]]);
                 let (xyz_ref, r_ref) = if local {
                     let rn = node_r[r * m + a];
-                    let p = rotmat::matvec(rn, x);
+                    let p = q4::mat_vec(&rn, x);
                     let o = node_xyz[r * m + a];
-                    ([p[0] + o[0], p[1] + o[1], p[2] + o[2]], rotmat::matmul(rn, rl))
+                    ([p[0] + o[0], p[1] + o[1], p[2] + o[2]], q4::matmul(rn, rl))
                 } else {
                     (x, rl)
                 };
@@ -383,7 +383,7 @@ impl Mosca {
         if let Some(i) = rows::<4>(&st_rot).iter().position(|q| q.iter().all(|x| *x == 0.0)) {
             return Err(key_err(s, "_rotation", format!("row {i} is a zero quaternion")));
         }
-        let st_quat = rows::<4>(&st_rot).into_iter().map(rotmat::normalize4).collect();
+        let st_quat = rows::<4>(&st_rot).into_iter().map(q4::normalize4).collect();
         let st = attributes(s, "B", &mut sdims)?;
         // Cameras.
         let mut cdims = Dims::default();
@@ -457,7 +457,7 @@ impl Mosca {
     }
 
     /// Position and rotation matrix of leaf `n` at frame `t` (`MoSca.warp`).
-    pub fn warp(&self, n: usize, t: usize) -> ([f64; 3], Mat3) {
+    pub fn warp(&self, n: usize, t: usize) -> ([f64; 3], M3) {
         let leaf = &self.leaves[n];
         let r = leaf.ref_time;
         let o = leaf.dyn_o;
@@ -466,38 +466,38 @@ impl Mosca {
             for j in 0..self.k {
                 let node = leaf.sk_ind[j];
                 let (rj, tj) = self.relative(node, r, t);
-                let d = rt_to_dq(rj, tj);
+                let d = dqb::from_rt(q4::from_rotmat(&rj), tj);
                 (0..8).for_each(|i| dq[i] += leaf.sk_w[j] * d[i]);
             }
             let unit = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
             let dq: [f64; 8] = std::array::from_fn(|i| dq[i] * o + unit[i] * (1.0 - o));
-            dq_to_rt(dq_to_unit(dq))
+            dqb::to_rt(&dqb::unit(&dq))
         } else {
             let (mut q, mut tt) = ([0.0; 4], [0.0; 3]);
             for j in 0..self.k {
                 let (rj, tj) = self.relative(leaf.sk_ind[j], r, t);
-                let qj = rotmat::mat_to_quat_pytorch3d(rj);
+                let qj = q4::from_rotmat(&rj);
                 (0..4).for_each(|i| q[i] += leaf.sk_w[j] * qj[i]);
                 (0..3).for_each(|i| tt[i] += leaf.sk_w[j] * tj[i]);
             }
             let q = std::array::from_fn(|i| q[i] * o + (1.0 - o) * f64::from(u8::from(i == 0)));
             (q2r(q), tt.map(|x| x * o))
         };
-        let p = rotmat::matvec(rot, leaf.xyz_ref);
-        ([p[0] + tr[0], p[1] + tr[1], p[2] + tr[2]], rotmat::matmul(rot, leaf.r_ref))
+        let p = q4::mat_vec(&rot, leaf.xyz_ref);
+        ([p[0] + tr[0], p[1] + tr[1], p[2] + tr[2]], q4::matmul(rot, leaf.r_ref))
     }
 
     /// Motion of node `node` from frame `i` to frame `j`: `R_ji = R_wj·R_wiᵀ`, `t_ji = t_wj − R_ji·t_wi`.
-    fn relative(&self, node: usize, i: usize, j: usize) -> (Mat3, [f64; 3]) {
+    fn relative(&self, node: usize, i: usize, j: usize) -> (M3, [f64; 3]) {
         let (ri, ti) = (self.node_r[i * self.m + node], self.node_xyz[i * self.m + node]);
         let (rj, tj) = (self.node_r[j * self.m + node], self.node_xyz[j * self.m + node]);
-        let r = rotmat::matmul_bt(rj, ri);
-        let p = rotmat::matvec(r, ti);
+        let r = q4::matmul_bt(rj, ri);
+        let p = q4::mat_vec(&r, ti);
         (r, [tj[0] - p[0], tj[1] - p[1], tj[2] - p[2]])
     }
 
     /// Dynamic means and rotation matrices at frame `t` (`DynSCFGaussian.forward(t)`).
-    pub fn dynamic_at(&self, t: usize) -> Vec<([f64; 3], Mat3)> {
+    pub fn dynamic_at(&self, t: usize) -> Vec<([f64; 3], M3)> {
         par_map(self.leaves.len(), |n| self.warp(n, t))
     }
 
@@ -529,33 +529,6 @@ fn rigid_inverse(m: &[f64; 16]) -> [f64; 16] {
     }
     out[15] = 1.0;
     out
-}
-
-/// `Rt2dq`: real part `p = quat(R)` (pytorch3d, w ≥ 0), dual part `0.5·(0, t) ⊗ p`.
-pub fn rt_to_dq(r: Mat3, t: [f64; 3]) -> [f64; 8] {
-    let p = rotmat::mat_to_quat_pytorch3d(r);
-    let q = rotmat::qmul([0.0, t[0], t[1], t[2]], p).map(|x| 0.5 * x);
-    [p[0], p[1], p[2], p[3], q[0], q[1], q[2], q[3]]
-}
-
-/// `dq2unitdq`: divide by the dual norm `(‖p‖, <p,q>/max(‖p‖, 1e-8))`; the identity when
-/// `‖p‖ < 1e-4`.
-pub fn dq_to_unit(dq: [f64; 8]) -> [f64; 8] {
-    let real = (0..4).map(|i| dq[i] * dq[i]).sum::<f64>().sqrt();
-    if real < 1e-4 {
-        return [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-    }
-    let dual = (0..4).map(|i| dq[i] * dq[i + 4]).sum::<f64>() / real.max(1e-8);
-    let (a, b) = (1.0 / real, -dual / (real * real));
-    std::array::from_fn(|i| if i < 4 { dq[i] * a } else { dq[i - 4] * b + dq[i] * a })
-}
-
-/// `dq2Rt`: `R = quat2mat(p)`, `t = 2·vec(q ⊗ conj(p))`.
-pub fn dq_to_rt(dq: [f64; 8]) -> (Mat3, [f64; 3]) {
-    let p = [dq[0], dq[1], dq[2], dq[3]];
-    let q = [dq[4], dq[5], dq[6], dq[7]];
-    let v = rotmat::qmul(q, [p[0], -p[1], -p[2], -p[3]]);
-    (rotmat::quat_to_mat(p), [2.0 * v[1], 2.0 * v[2], 2.0 * v[3]])
 }
 
 /// The SH-degree-`deg` colour columns of a set: degree-0 RGB and the rest, padded with
@@ -606,8 +579,7 @@ impl BaseModel for Mosca {
     fn poses(&self, t: usize) -> Poses {
         let dynamic = self.dynamic_at(t);
         let mut position: Vec<[f64; 3]> = dynamic.iter().map(|d| d.0).collect();
-        let mut rotation: Vec<[f64; 4]> =
-            dynamic.iter().map(|d| rotmat::mat_to_quat_pytorch3d(d.1)).collect();
+        let mut rotation: Vec<[f64; 4]> = dynamic.iter().map(|d| q4::from_rotmat(&d.1)).collect();
         position.extend(&self.st_xyz);
         rotation.extend(&self.st_quat);
         Poses { position, rotation }

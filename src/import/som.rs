@@ -14,7 +14,7 @@ use std::path::PathBuf;
 
 use crate::context::Context;
 use crate::formats::torch::{Checkpoint, Dim, Dims, Error as CkptError};
-use crate::math::{rot6d, rotmat};
+use crate::math::{quat64 as q4, rot6d};
 use crate::model::Gaussians;
 use crate::render::ShFrame;
 use crate::tables::Provenance;
@@ -122,7 +122,7 @@ fn params(
     let opacities = read("opacities", &[Dim::Named(n)])?;
     Ok(Params {
         means: rows(&means),
-        quats: rows::<4>(&quats).into_iter().map(rotmat::normalize4).collect(),
+        quats: rows::<4>(&quats).into_iter().map(q4::normalize4).collect(),
         scales: rows::<3>(&scales).into_iter().map(|s| s.map(f64::exp)).collect(),
         colors: rows::<3>(&colors).into_iter().map(|c| c.map(sigmoid)).collect(),
         opacities: opacities.into_iter().map(sigmoid).collect(),
@@ -186,7 +186,7 @@ impl Som {
     }
 
     /// `[R | t]` of foreground Gaussian `g` at frame `t` (`compute_transforms`).
-    pub fn transform(&self, g: usize, t: usize) -> (rotmat::Mat3, [f64; 3]) {
+    pub fn transform(&self, g: usize, t: usize) -> (q4::M3, [f64; 3]) {
         let mut r6 = [0.0; 6];
         let mut tr = [0.0; 3];
         for k in 0..self.k {
@@ -202,9 +202,9 @@ impl Som {
     pub fn fg_poses(&self, t: usize) -> Poses {
         let per: Vec<([f64; 3], [f64; 4])> = par_map(self.fg.means.len(), |g| {
             let (r, tr) = self.transform(g, t);
-            let m = rotmat::matvec(r, self.fg.means[g]);
+            let m = q4::mat_vec(&r, self.fg.means[g]);
             let mu = [m[0] + tr[0], m[1] + tr[1], m[2] + tr[2]];
-            let q = rotmat::normalize4(rotmat::qmul(rotmat::mat_to_quat_roma(r), self.fg.quats[g]));
+            let q = q4::normalize4(q4::mul(q4::mat_to_quat_roma(r), self.fg.quats[g]));
             (mu, q)
         });
         Poses {

@@ -1,6 +1,10 @@
-//! Double-precision quaternion algebra (w, x, y, z) and the vector-Jacobian product (VJP) of
-//! each operation, for the optimiser's losses: their gradients are checked by finite
-//! differences, which needs f64 (the renderer's f32 helpers are in `render::project`).
+//! Double-precision quaternions (w, x, y, z, Hamilton product) and rotation matrices: the
+//! vector-Jacobian product (VJP) of each operation the optimiser's losses use (checked by
+//! finite differences, which needs f64; the renderer's f32 helpers are in [`super::quat`]),
+//! and the two upstream matrix-to-quaternion conventions the importers reproduce: roma's
+//! ([`mat_to_quat_roma`]: Markley's method, the largest-magnitude component made positive;
+//! Shape of Motion) and pytorch3d ≥ 0.7.6's ([`from_rotmat`]: the largest candidate, then
+//! standardised to w ≥ 0; MoSca).
 //!
 //! A VJP takes the cotangent `g` of the output and returns the cotangents of the inputs.
 
@@ -131,6 +135,61 @@ pub fn standardize(q: Q) -> Q {
     if q[0] < 0.0 { q.map(|v| -v) } else { q }
 }
 
+/// `F.normalize(q)`: `q / max(‖q‖, 1e-12)`.
+pub fn normalize4(q: [f64; 4]) -> [f64; 4] {
+    let n = q.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-12);
+    q.map(|x| x / n)
+}
+
+/// pytorch3d `quaternion_to_matrix` (self-normalising through `2 / ‖q‖²`).
+pub fn quat_to_mat(q: [f64; 4]) -> M3 {
+    let [r, i, j, k] = q;
+    let two_s = 2.0 / (r * r + i * i + j * j + k * k);
+    [
+        [1.0 - two_s * (j * j + k * k), two_s * (i * j - k * r), two_s * (i * k + j * r)],
+        [two_s * (i * j + k * r), 1.0 - two_s * (i * i + k * k), two_s * (j * k - i * r)],
+        [two_s * (i * k - j * r), two_s * (j * k + i * r), 1.0 - two_s * (i * i + j * j)],
+    ]
+}
+
+/// roma 1.8 `rotmat_to_unitquat` (Markley; scipy's `from_matrix`), returned as `w, x, y, z`.
+pub fn mat_to_quat_roma(m: M3) -> [f64; 4] {
+    let diag = [m[0][0], m[1][1], m[2][2]];
+    let trace = diag[0] + diag[1] + diag[2];
+    let decision = [diag[0], diag[1], diag[2], trace];
+    // torch.argmax returns the first maximum.
+    let mut choice = 0;
+    for c in 1..4 {
+        if decision[c] > decision[choice] {
+            choice = c;
+        }
+    }
+    let mut xyzw = [0.0; 4];
+    if choice != 3 {
+        let i = choice;
+        let j = (i + 1) % 3;
+        let k = (j + 1) % 3;
+        xyzw[i] = 1.0 - trace + 2.0 * m[i][i];
+        xyzw[j] = m[j][i] + m[i][j];
+        xyzw[k] = m[k][i] + m[i][k];
+        xyzw[3] = m[k][j] - m[j][k];
+    } else {
+        xyzw = [m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1], 1.0 + trace];
+    }
+    let n = xyzw.iter().map(|x| x * x).sum::<f64>().sqrt();
+    [xyzw[3] / n, xyzw[0] / n, xyzw[1] / n, xyzw[2] / n]
+}
+
+/// `a · b`.
+pub fn matmul(a: M3, b: M3) -> M3 {
+    std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum()))
+}
+
+/// `a · bᵀ`.
+pub fn matmul_bt(a: M3, b: M3) -> M3 {
+    std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[j][k]).sum()))
+}
+
 /// `m v`.
 #[inline]
 pub fn mat_vec(m: &M3, v: V3) -> V3 {
@@ -186,6 +245,35 @@ pub fn v64(v: [f32; 3]) -> V3 {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+
+    #[test]
+    fn conventions_agree_up_to_sign_and_round_trip() {
+        for q in [
+            [0.3, -0.5, 0.7, 0.1],
+            [-0.9, 0.1, 0.2, 0.3],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.01, 0.2, -0.9, 0.3],
+        ] {
+            let q = normalize4(q);
+            let m = quat_to_mat(q);
+            let a = mat_to_quat_roma(m);
+            let b = from_rotmat(&m);
+            let s = if q[0] * a[0] + q[1] * a[1] + q[2] * a[2] + q[3] * a[3] < 0.0 {
+                -1.0
+            } else {
+                1.0
+            };
+            assert!(close(&a, &q.map(|x| s * x), 1e-12), "{a:?} {q:?}");
+            assert!(b[0] >= 0.0);
+            let s = if q[0] < 0.0 { -1.0 } else { 1.0 };
+            assert!(close(&b, &q.map(|x| s * x), 1e-12), "{b:?} {q:?}");
+            // roma makes the largest-magnitude component positive.
+            let big = (0..4).max_by(|&i, &j| a[i].abs().total_cmp(&a[j].abs())).unwrap_or(0);
+            assert!(a[big] > 0.0);
+        }
+        let i = mul([0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]);
+        assert_eq!(i, [0.0, 0.0, 0.0, 1.0]);
+    }
 
     /// A small deterministic generator for tests (splitmix64), uniform in [-1, 1).
     pub(crate) struct TestRng(pub u64);

@@ -155,7 +155,46 @@ pub struct RenderAux {
     pub n_pixels: Vec<u32>,
 }
 
+impl RenderAux {
+    /// Statistics of `n` Gaussians, all culled (zeros).
+    pub fn culled(n: usize) -> RenderAux {
+        RenderAux {
+            visible: vec![false; n],
+            radius_px: vec![0.0; n],
+            sum_w2: vec![0.0; n],
+            sum_w: vec![0.0; n],
+            n_pixels: vec![0; n],
+        }
+    }
+}
+
 impl RenderOutput {
+    /// A blank `w`×`h` output with `nf` feature channels and `aux` (filled by
+    /// [`RenderOutput::set_pixel`]).
+    pub fn blank(w: usize, h: usize, nf: usize, aux: RenderAux) -> RenderOutput {
+        RenderOutput {
+            width: w,
+            height: h,
+            color: vec![0.0; w * h * 3],
+            features: vec![0.0; w * h * nf],
+            alpha: vec![0.0; w * h],
+            depth: vec![0.0; w * h],
+            aux,
+        }
+    }
+
+    /// Pixel `p` from its blended channels `ch` (`[4 + F]`: colour, depth, features) and
+    /// final transmittance `t`: the colour composited over `background`, alpha = 1 − T.
+    pub fn set_pixel(&mut self, p: usize, ch: &[f32], t: f32, background: [f32; 3]) {
+        let nf = ch.len() - 4;
+        for k in 0..3 {
+            self.color[p * 3 + k] = ch[k] + t * background[k];
+        }
+        self.depth[p] = ch[3];
+        self.alpha[p] = 1.0 - t;
+        self.features[p * nf..(p + 1) * nf].copy_from_slice(&ch[4..]);
+    }
+
     /// Cheap consistency check of the output sizes: `Err` names the first array whose
     /// length disagrees with W, H, F and N.
     pub fn validate_counts(&self, num_features: usize, num_gaussians: usize) -> Result<(), Error> {
@@ -253,6 +292,42 @@ pub struct ImageGrads {
     pub depth: Vec<f32>,
     /// dL/d features `[H, W, F]`.
     pub features: Vec<f32>,
+}
+
+impl ImageGrads {
+    /// Check that each non-empty cotangent has the size of a `w`×`h` image with `nf`
+    /// features (an empty one means zero).
+    pub fn check_shapes(&self, w: usize, h: usize, nf: usize) -> Result<(), Error> {
+        for (name, got, expected) in [
+            ("v_color", &self.color, w * h * 3),
+            ("v_alpha", &self.alpha, w * h),
+            ("v_depth", &self.depth, w * h),
+            ("v_features", &self.features, w * h * nf),
+        ] {
+            if !got.is_empty() && got.len() != expected {
+                return Err(Error::Shape { name, got: got.len(), expected });
+            }
+        }
+        Ok(())
+    }
+
+    /// The cotangents of pixel `p`'s blended channels into `v_ch` (`[4 + F]`: colour,
+    /// depth, features); returns dL/d alpha with the background term
+    /// colour += (1 − alpha)·bg moved into it.
+    pub fn pixel(&self, p: usize, background: [f32; 3], v_ch: &mut [f32]) -> f32 {
+        let nf = v_ch.len() - 4;
+        let mut va = self.alpha.get(p).copied().unwrap_or(0.0);
+        for k in 0..3 {
+            let vc = self.color.get(p * 3 + k).copied().unwrap_or(0.0);
+            v_ch[k] = vc;
+            va -= background[k] * vc;
+        }
+        v_ch[3] = self.depth.get(p).copied().unwrap_or(0.0);
+        for f in 0..nf {
+            v_ch[4 + f] = self.features.get(p * nf + f).copied().unwrap_or(0.0);
+        }
+        va
+    }
 }
 
 /// Gradients w.r.t. one frame's Gaussians, canonical order, 0 for culled Gaussians.

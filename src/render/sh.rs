@@ -10,6 +10,8 @@
 
 use std::ops::{Add, Mul, Sub};
 
+/// `Y_0 = 1/(2√π)`: a 3DGS degree-0 coefficient `f_dc` is the RGB `dc = 0.5 + C0·f_dc`.
+pub const C0: f64 = 0.282_094_791_773_878_14;
 const C1: f32 = 0.488_602_5;
 const C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
 const C3: [f32; 7] = [
@@ -96,6 +98,12 @@ where
         }
     }
     b
+}
+
+/// The basis `Y_0..Y_15` at unit direction `dir` (entries above `degree`, and `Y_0`, are 0):
+/// `eval_unclamped(degree, dc, rest, dir)[c] = dc[c] + Σ_k basis_values(..)[k] · rest[(k-1)·3 + c]`.
+pub fn basis_values(degree: u8, dir: [f32; 3]) -> [f32; 16] {
+    basis(degree, dir[0], dir[1], dir[2])
 }
 
 /// Colour before the clamp: `dc + Σ Y_k(dir) rest[k-1]`; `rest` is this Gaussian's `[K, 3]`.

@@ -24,7 +24,7 @@ use crate::formats::png::{Image, write_png};
 use crate::model::{FrameState, Model};
 use crate::render::{RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame};
 use crate::scene::{Camera, Scene, Split};
-use crate::util::fs::write_atomic;
+use crate::util::fs::{publish, staging_dir, write_atomic};
 
 /// Which cameras to render.
 #[derive(
@@ -167,7 +167,7 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
     }
     let bar = ctx.progress(cams.len() as u64, "render");
     let renderer = super::device::renderer(ctx)?;
-    let staging = staging_dir(&p.out)?;
+    let staging = staging_dir(&p.out, ".render-")?;
     let staged = staging.path();
     for (&frame, cs) in &by_frame {
         let state = model.frame(frame as usize)?;
@@ -186,36 +186,6 @@ pub fn run(p: &RenderParams, ctx: &Context) -> anyhow::Result<()> {
     write_manifest(staged, p, model.sh_frame, cams.len())?;
     publish(staged, &p.out)?;
     ctx.info(format!("rendered {} images into {}", cams.len(), p.out.display()));
-    Ok(())
-}
-
-/// A staging directory beside `out` (same file system, so its files can be renamed in).
-fn staging_dir(out: &Path) -> anyhow::Result<tempfile::TempDir> {
-    let abs = std::path::absolute(out).with_context(|| out.display().to_string())?;
-    let parent = abs.parent().unwrap_or(&abs);
-    std::fs::create_dir_all(parent).with_context(|| parent.display().to_string())?;
-    tempfile::Builder::new()
-        .prefix(".render-")
-        .tempdir_in(parent)
-        .with_context(|| format!("{}: cannot create a staging directory", parent.display()))
-}
-
-/// Move the staged files into `out`: the whole directory when `out` does not exist yet,
-/// otherwise file by file, replacing files of the same name and keeping the others.
-fn publish(staged: &Path, out: &Path) -> anyhow::Result<()> {
-    if !out.exists() {
-        return std::fs::rename(staged, out).with_context(|| out.display().to_string());
-    }
-    for e in std::fs::read_dir(staged).with_context(|| staged.display().to_string())? {
-        let e = e.with_context(|| staged.display().to_string())?;
-        let to = out.join(e.file_name());
-        if e.file_type()?.is_dir() {
-            std::fs::create_dir_all(&to).with_context(|| to.display().to_string())?;
-            publish(&e.path(), &to)?;
-        } else {
-            std::fs::rename(e.path(), &to).with_context(|| to.display().to_string())?;
-        }
-    }
     Ok(())
 }
 

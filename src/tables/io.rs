@@ -6,9 +6,8 @@
 //!
 //! Readers never hand parquet-rs a file it could panic on: [`load_metadata`] checks the magic
 //! bytes and that every column chunk lies inside the file before anything is decoded, and
-//! [`read_row_groups`] feeds the decoder through a page reader that rejects dictionary-encoded
-//! data pages of a chunk without a dictionary page and pages in encodings other than PLAIN,
-//! RLE and dictionary (parquet-rs 60 panics on corrupt ones of each).
+//! [`read_row_groups`] feeds the decoder through [`super::pages::CheckedPages`], which rejects
+//! the corrupt pages parquet-rs 60 would panic on.
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -19,14 +18,14 @@ use arrow::datatypes::{DataType, Field, SchemaRef};
 use bytes::Bytes;
 use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ParquetRecordBatchReader, RowGroups};
 use parquet::arrow::{ArrowWriter, ProjectionMask, parquet_to_arrow_field_levels};
-use parquet::basic::{Compression, Encoding, ZstdLevel};
-use parquet::column::page::{Page, PageIterator, PageMetadata, PageReader};
-use parquet::errors::ParquetError;
+use parquet::basic::{Compression, ZstdLevel};
+use parquet::column::page::{PageIterator, PageReader};
 use parquet::file::metadata::{KeyValue, ParquetMetaData, RowGroupMetaData};
 use parquet::file::properties::WriterProperties;
 use parquet::file::reader::ChunkReader;
 use parquet::file::serialized_reader::SerializedPageReader;
 
+use super::pages::CheckedPages;
 use super::{Error, Result};
 
 /// Metadata key naming the table kind (e.g. `trajectories`).
@@ -212,6 +211,31 @@ impl FrameWriter {
     pub fn finish(self) -> Result<()> {
         self.inner.finish()
     }
+}
+
+/// Row group `t` of a per-frame table whose rows carry ids in `id_column`, in the order
+/// `expected_id(row)` (`order` says which, for the error), with its frame column and ids
+/// checked; returns the batch and its first file row (for error messages).
+pub fn read_frame_group(
+    reader: &TableReader,
+    t: usize,
+    id_column: &str,
+    expected_id: impl Fn(usize) -> u32,
+    order: &str,
+) -> Result<(RecordBatch, u64)> {
+    let path = reader.path();
+    let b = reader.read_group(t)?;
+    let row0 = reader.row_group_offset(t);
+    let c = Columns::new(path, &b);
+    super::validate::frame_column(
+        path,
+        t,
+        row0,
+        c.values::<arrow::datatypes::UInt32Type>("frame")?,
+    )?;
+    let ids = c.values::<arrow::datatypes::UInt32Type>(id_column)?;
+    super::validate::ids_in_order(path, id_column, row0, ids, expected_id, order)?;
+    Ok((b, row0))
 }
 
 /// Write a whole table of one row group per batch, atomically.
@@ -440,7 +464,7 @@ impl<R: ChunkReader + 'static> RowGroups for CheckedRowGroups<'_, R> {
                 rg.num_rows().max(0) as usize,
                 None,
             )?;
-            chunks.push(Ok(Box::new(CheckedPages { inner: pages, dictionary: false })));
+            chunks.push(Ok(Box::new(CheckedPages::new(pages, rg.column(i).column_descr_ptr()))));
         }
         Ok(Box::new(Chunks(chunks.into_iter())))
     }
@@ -465,69 +489,6 @@ impl Iterator for Chunks {
 }
 
 impl PageIterator for Chunks {}
-
-/// The pages of one column chunk, rejecting a dictionary-encoded data page that no
-/// dictionary page precedes.
-struct CheckedPages<P> {
-    inner: P,
-    dictionary: bool,
-}
-
-impl<P: PageReader> CheckedPages<P> {
-    fn check(&mut self, page: Option<Page>) -> parquet::errors::Result<Option<Page>> {
-        match &page {
-            Some(Page::DictionaryPage { .. }) => self.dictionary = true,
-            Some(Page::DataPage { encoding, .. } | Page::DataPageV2 { encoding, .. })
-                if matches!(encoding, Encoding::PLAIN_DICTIONARY | Encoding::RLE_DICTIONARY)
-                    && !self.dictionary =>
-            {
-                return Err(ParquetError::General(
-                    "corrupt column chunk: a dictionary-encoded data page without a dictionary page"
-                        .into(),
-                ));
-            }
-            Some(Page::DataPage { encoding, .. } | Page::DataPageV2 { encoding, .. })
-                if !matches!(
-                    encoding,
-                    Encoding::PLAIN
-                        | Encoding::PLAIN_DICTIONARY
-                        | Encoding::RLE_DICTIONARY
-                        | Encoding::RLE
-                ) =>
-            {
-                // parquet-rs 60 panics on corrupt BYTE_STREAM_SPLIT and DELTA pages; no
-                // writer of usplat4d tables (ours, pyarrow's defaults) uses them
-                return Err(ParquetError::General(format!(
-                    "unsupported page encoding {encoding} (tables use PLAIN, RLE and dictionary pages)"
-                )));
-            }
-            _ => {}
-        }
-        Ok(page)
-    }
-}
-
-impl<P: PageReader> Iterator for CheckedPages<P> {
-    type Item = parquet::errors::Result<Page>;
-    fn next(&mut self) -> Option<Self::Item> {
-        self.get_next_page().transpose()
-    }
-}
-
-impl<P: PageReader> PageReader for CheckedPages<P> {
-    fn get_next_page(&mut self) -> parquet::errors::Result<Option<Page>> {
-        let page = self.inner.get_next_page()?;
-        self.check(page)
-    }
-
-    fn peek_next_page(&mut self) -> parquet::errors::Result<Option<PageMetadata>> {
-        self.inner.peek_next_page()
-    }
-
-    fn skip_next_page(&mut self) -> parquet::errors::Result<()> {
-        self.inner.skip_next_page()
-    }
-}
 
 /// Every difference between the expected and the found schema, in words.
 pub fn schema_problems(expected: &SchemaRef, found: &SchemaRef) -> Vec<String> {

@@ -15,6 +15,7 @@ pub mod io;
 pub mod key_nodes;
 pub mod metrics;
 pub mod model_cameras;
+pub mod pages;
 pub mod segments;
 pub mod tracks_2d;
 pub mod tracks_3d;

@@ -78,26 +78,23 @@ impl Tracks2dWriter {
 /// Reads a `tracks_2d` file frame by frame, validating each frame.
 pub struct Tracks2dReader(TrackFrames);
 
+impl std::ops::Deref for Tracks2dReader {
+    type Target = TrackFrames;
+    fn deref(&self) -> &TrackFrames {
+        &self.0
+    }
+}
+
 impl Tracks2dReader {
     /// Open `path`; every frame must hold the same number of tracks.
     pub fn open(path: &Path) -> Result<Self> {
         Ok(Tracks2dReader(TrackFrames::open::<Tracks2dTable>(path)?))
     }
 
-    /// Number of frames T.
-    pub fn num_frames(&self) -> usize {
-        self.0.inner.num_row_groups()
-    }
-
-    /// Number of tracks M.
-    pub fn num_tracks(&self) -> usize {
-        self.0.num_tracks
-    }
-
     /// The tracks of frame `t`, validated.
     pub fn frame(&self, t: usize) -> Result<Tracks2dFrame> {
         let (b, row0) = self.0.group(t)?;
-        let path = self.0.inner.path();
+        let path = self.0.path();
         let c = Columns::new(path, &b);
         let x = c.values::<Float32Type>("x")?;
         let y = c.values::<Float32Type>("y")?;

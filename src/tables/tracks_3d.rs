@@ -8,9 +8,9 @@ use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{ArrayRef, Float32Array, RecordBatch, UInt32Array};
-use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
+use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef};
 
-use super::io::{Columns, FrameWriter, Table, TableReader, batch, field};
+use super::io::{Columns, FrameWriter, Table, TableReader, batch, field, read_frame_group};
 use super::{Provenance, Result, validate};
 
 /// Marker type of the `tracks_3d` table.
@@ -68,26 +68,23 @@ impl Tracks3dWriter {
 /// Reads a `tracks_3d` file frame by frame, validating each frame.
 pub struct Tracks3dReader(TrackFrames);
 
+impl std::ops::Deref for Tracks3dReader {
+    type Target = TrackFrames;
+    fn deref(&self) -> &TrackFrames {
+        &self.0
+    }
+}
+
 impl Tracks3dReader {
     /// Open `path`; every frame must hold the same number of tracks.
     pub fn open(path: &Path) -> Result<Self> {
         Ok(Tracks3dReader(TrackFrames::open::<Tracks3dTable>(path)?))
     }
 
-    /// Number of frames T.
-    pub fn num_frames(&self) -> usize {
-        self.0.inner.num_row_groups()
-    }
-
-    /// Number of tracks M.
-    pub fn num_tracks(&self) -> usize {
-        self.0.num_tracks
-    }
-
     /// Positions `[M, 3]` at frame `t`, validated.
     pub fn frame(&self, t: usize) -> Result<Vec<[f32; 3]>> {
         let (b, row0) = self.0.group(t)?;
-        let path = self.0.inner.path();
+        let path = self.0.path();
         let c = Columns::new(path, &b);
         let mut cols = Vec::with_capacity(3);
         for name in ["x", "y", "z"] {
@@ -100,13 +97,15 @@ impl Tracks3dReader {
 }
 
 /// The frame-by-frame reading shared by the track tables: M rows in every frame, the
-/// frame column and track ids 0..M-1 checked on each read.
-pub(crate) struct TrackFrames {
-    pub(crate) inner: TableReader,
-    pub(crate) num_tracks: usize,
+/// frame column and track ids 0..M-1 checked on each read. The track readers dereference
+/// to it for their frame and track counts.
+pub struct TrackFrames {
+    inner: TableReader,
+    num_tracks: usize,
 }
 
 impl TrackFrames {
+    /// Open `path` as table `T`; every frame must hold the rows of frame 0.
     pub(crate) fn open<T: Table>(path: &Path) -> Result<Self> {
         let inner = TableReader::open::<T>(path)?;
         let num_tracks =
@@ -119,23 +118,24 @@ impl TrackFrames {
         Ok(TrackFrames { inner, num_tracks })
     }
 
+    /// Number of frames T.
+    pub fn num_frames(&self) -> usize {
+        self.inner.num_row_groups()
+    }
+
+    /// The file read.
+    pub fn path(&self) -> &Path {
+        self.inner.path()
+    }
+
+    /// Number of tracks M.
+    pub fn num_tracks(&self) -> usize {
+        self.num_tracks
+    }
+
     /// Row group `t` with its frame column and ids checked, and its first file row.
     pub(crate) fn group(&self, t: usize) -> Result<(RecordBatch, u64)> {
-        let path = self.inner.path();
-        let b = self.inner.read_group(t)?;
-        let row0 = self.inner.row_group_offset(t);
-        let c = Columns::new(path, &b);
-        validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
-        let ids = c.values::<UInt32Type>("track_id")?;
-        validate::ids_in_order(
-            path,
-            "track_id",
-            row0,
-            ids,
-            |i| i as u32,
-            "ids run 0..M-1 in every frame",
-        )?;
-        Ok((b, row0))
+        read_frame_group(&self.inner, t, "track_id", |i| i as u32, "ids run 0..M-1 in every frame")
     }
 }
 

@@ -8,9 +8,9 @@ use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{ArrayRef, Float32Array, RecordBatch, UInt32Array};
-use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
+use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef};
 
-use super::io::{Columns, FrameWriter, Table, TableReader, batch, field};
+use super::io::{Columns, FrameWriter, Table, TableReader, batch, field, read_frame_group};
 use super::{Provenance, Result, validate};
 
 /// Pose of every Gaussian at one frame, `[N]` each, canonical order.
@@ -115,19 +115,14 @@ impl TrajectoryReader {
     /// Read and validate frame `t`.
     pub fn frame(&self, t: usize) -> Result<FrameState> {
         let path = self.inner.path();
-        let b = self.inner.read_group(t)?;
-        let row0 = self.inner.row_group_offset(t);
-        let c = Columns::new(path, &b);
-        validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
-        let id = c.values::<UInt32Type>("gaussian_id")?;
-        validate::ids_in_order(
-            path,
+        let (b, row0) = read_frame_group(
+            &self.inner,
+            t,
             "gaussian_id",
-            row0,
-            id,
             |i| self.ids[i],
             "rows of each frame follow the gaussians order",
         )?;
+        let c = Columns::new(path, &b);
         let mut f = Vec::with_capacity(7);
         for name in ["x", "y", "z", "qw", "qx", "qy", "qz"] {
             let v = c.values::<Float32Type>(name)?;
@@ -135,7 +130,7 @@ impl TrajectoryReader {
             f.push(v);
         }
         validate::unit_quaternions(path, row0, f[3], f[4], f[5], f[6])?;
-        let n = id.len();
+        let n = b.num_rows();
         Ok(FrameState {
             frame: t as u32,
             position: (0..n).map(|i| [f[0][i], f[1][i], f[2][i]]).collect(),

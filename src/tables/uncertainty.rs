@@ -12,7 +12,7 @@ use std::sync::Arc;
 use arrow::array::{ArrayRef, BooleanArray, Float32Array, RecordBatch, UInt32Array};
 use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef, UInt32Type};
 
-use super::io::{Columns, FrameWriter, Table, TableReader, batch, field};
+use super::io::{Columns, FrameWriter, Table, TableReader, batch, field, read_frame_group};
 use super::{Error, Provenance, Result, validate};
 
 /// Marker type of the `uncertainty` table.
@@ -140,19 +140,14 @@ impl UncertaintyReader {
     /// Read and validate frame `t`: frame column, id order, finite values, u > 0.
     pub fn frame(&self, t: usize) -> Result<UncertaintyFrame> {
         let path = self.inner.path();
-        let b = self.inner.read_group(t)?;
-        let row0 = self.inner.row_group_offset(t);
-        let c = Columns::new(path, &b);
-        validate::frame_column(path, t, row0, c.values::<UInt32Type>("frame")?)?;
-        let id = c.values::<UInt32Type>("gaussian_id")?;
-        validate::ids_in_order(
-            path,
+        let (b, row0) = read_frame_group(
+            &self.inner,
+            t,
             "gaussian_id",
-            row0,
-            id,
             |i| self.ids[i],
             "every frame lists the Gaussians in the order of frame 0",
         )?;
+        let c = Columns::new(path, &b);
         let sum_w2 = c.values::<Float32Type>("sum_w2")?;
         let sum_w = c.values::<Float32Type>("sum_w")?;
         let u = c.values::<Float32Type>("u")?;

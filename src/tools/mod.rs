@@ -1,6 +1,7 @@
 //! Subcommands around the stages: table inspection ([`inspect`]), directory validation
-//! ([`check`]) and benchmarks ([`bench`]).
+//! ([`check`]), exports to splat viewers ([`export`]) and benchmarks ([`bench`]).
 
 pub mod bench;
 pub mod check;
+pub mod export;
 pub mod inspect;

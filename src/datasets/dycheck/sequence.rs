@@ -254,60 +254,6 @@ pub fn read_camera_path(dir: &Path, factor: u32) -> Result<Vec<Camera>> {
 mod tests {
     use super::*;
 
-    fn windmill() -> Option<PathBuf> {
-        let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-        let found = ["../../shared/data", "../shared/data"]
-            .iter()
-            .map(|r| root.join(r).join("real/dycheck-paper-windmill-cameras"))
-            .find(|p| p.join("splits/train.json").exists());
-        if found.is_none() {
-            eprintln!("SKIP: ../shared/data/real/dycheck-paper-windmill-cameras not found");
-        }
-        found
-    }
-
-    #[test]
-    fn windmill_camera_path_at_factor_2() {
-        let Some(dir) = windmill() else { return };
-        let cams = read_camera_path(&dir, 2).unwrap();
-        let train: Vec<&Camera> = cams.iter().filter(|c| c.split == Split::Train).collect();
-        let eval: Vec<&Camera> = cams.iter().filter(|c| c.split == Split::Eval).collect();
-        assert_eq!((train.len(), eval.len()), (277, 419));
-        assert_eq!(eval.iter().filter(|c| c.camera == "1").count(), 219);
-        assert_eq!(eval.iter().filter(|c| c.camera == "2").count(), 200);
-        for (t, c) in train.iter().enumerate() {
-            assert_eq!((c.frame, c.camera.as_str()), (t as u32, "0"));
-        }
-        let c2 = cams.iter().find(|c| c.camera == "2" && c.frame == 77).unwrap();
-        assert_eq!(c2.image_path, "rgb/2/00077.png");
-        assert_eq!(c2.mask_path.as_deref(), Some("mask/2/00077.png"));
-        assert_eq!(train[3].depth_path.as_deref(), Some("depth/0/00003.npy"));
-        for c in &cams {
-            assert_eq!((c.width, c.height), (360, 480));
-            assert_eq!(c.distortion, None);
-            let r = c.rotation();
-            let dev = (r * r.transpose() - glam::DMat3::IDENTITY).to_cols_array();
-            assert!(dev.iter().all(|x| x.abs() < 1e-6), "{dev:?}");
-            assert!((r.determinant() - 1.0).abs() < 1e-6);
-        }
-        let raw = DycheckCamera::read(&dir.join("camera/1_00000.json"), None).unwrap();
-        let c1 = cams.iter().find(|c| c.camera == "1" && c.frame == 0).unwrap();
-        assert_eq!((c1.fx, c1.fy), (raw.focal_length / 2.0, raw.focal_length / 2.0));
-        assert_eq!((c1.cx, c1.cy), (raw.principal_point[0] / 2.0, raw.principal_point[1] / 2.0));
-        assert!((c1.center() - glam::DVec3::from_array(raw.position)).length() < 1e-9);
-    }
-
-    #[test]
-    fn factor_too_large_for_the_image_is_an_error() {
-        let Some(dir) = windmill() else { return };
-        let err = read_camera_path(&dir, 2000).unwrap_err();
-        let want = format!(
-            "{}: key 'image_size': [720, 960] at factor 2000 rounds to an empty image",
-            dir.join("camera/0_00000.json").display()
-        );
-        assert_eq!(err.to_string(), want);
-    }
-
     #[test]
     fn factor_zero_is_an_error() {
         let err = read_camera_path(Path::new("nowhere"), 0).unwrap_err();

@@ -184,14 +184,7 @@ fn run_forward(
 
 /// Per-Gaussian sums of the per-pair statistics, in list order.
 fn reduce_stats(saved: &SavedForBackward, fwd: &FwdImages) -> RenderAux {
-    let n = saved.splats.len();
-    let mut aux = RenderAux {
-        visible: vec![false; n],
-        radius_px: vec![0.0; n],
-        sum_w2: vec![0.0; n],
-        sum_w: vec![0.0; n],
-        n_pixels: vec![0; n],
-    };
+    let mut aux = RenderAux::culled(saved.splats.len());
     for (&g, s) in saved.isect.gaussian.iter().zip(&fwd.stats) {
         let g = g as usize;
         aux.visible[g] = true;
@@ -229,24 +222,10 @@ fn assemble(
 ) -> RenderOutput {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let nc = 4 + nf;
-    let mut out = RenderOutput {
-        width: w,
-        height: h,
-        color: vec![0.0; w * h * 3],
-        features: vec![0.0; w * h * nf],
-        alpha: vec![0.0; w * h],
-        depth: vec![0.0; w * h],
-        aux,
-    };
+    let mut out = RenderOutput::blank(w, h, nf, aux);
     for p in 0..w * h {
         let ch = &fwd.channels[p * nc..(p + 1) * nc];
-        let t = saved.final_t[p];
-        for k in 0..3 {
-            out.color[p * 3 + k] = ch[k] + t * settings.background[k];
-        }
-        out.depth[p] = ch[3];
-        out.alpha[p] = 1.0 - t;
-        out.features[p * nf..(p + 1) * nf].copy_from_slice(&ch[4..]);
+        out.set_pixel(p, ch, saved.final_t[p], settings.background);
     }
     out
 }
@@ -308,33 +287,12 @@ impl DifferentiableRenderer for CpuRenderer {
         if saved.splats.len() != n || saved.final_t.len() != w * h {
             return Err(Error::Settings("saved forward state belongs to another render".into()));
         }
-        let opt = |name: &'static str, got: &[f32], expected: usize| {
-            if got.is_empty() || got.len() == expected {
-                Ok(())
-            } else {
-                Err(Error::Shape { name, got: got.len(), expected })
-            }
-        };
-        opt("v_color", &v.color, w * h * 3)?;
-        opt("v_alpha", &v.alpha, w * h)?;
-        opt("v_depth", &v.depth, w * h)?;
-        opt("v_features", &v.features, w * h * nf)?;
-        // Per-pixel cotangents of the blended channels; the background term
-        // colour += (1 − alpha)·bg moves into dL/dalpha.
+        v.check_shapes(w, h, nf)?;
+        // Per-pixel cotangents of the blended channels and of alpha.
         let mut v_ch = vec![0.0f32; w * h * nc];
         let mut v_alpha = vec![0.0f32; w * h];
         for p in 0..w * h {
-            let mut va = v.alpha.get(p).copied().unwrap_or(0.0);
-            for k in 0..3 {
-                let vc = v.color.get(p * 3 + k).copied().unwrap_or(0.0);
-                v_ch[p * nc + k] = vc;
-                va -= settings.background[k] * vc;
-            }
-            v_ch[p * nc + 3] = v.depth.get(p).copied().unwrap_or(0.0);
-            for f in 0..nf {
-                v_ch[p * nc + 4 + f] = v.features.get(p * nf + f).copied().unwrap_or(0.0);
-            }
-            v_alpha[p] = va;
+            v_alpha[p] = v.pixel(p, settings.background, &mut v_ch[p * nc..(p + 1) * nc]);
         }
         let inp = RasterInputs {
             grid: TileGrid::new(cam.width, cam.height),

@@ -330,31 +330,13 @@ fn assemble(key: &FrameKey, settings: &RenderSettings, words: &[u32]) -> RenderO
     let t_at = w * h * nc;
     let s_at = t_at + w * h;
     let o_at = s_at + 4 * n;
-    let mut out = RenderOutput {
-        width: w,
-        height: h,
-        color: vec![0.0; w * h * 3],
-        features: vec![0.0; w * h * nf],
-        alpha: vec![0.0; w * h],
-        depth: vec![0.0; w * h],
-        aux: RenderAux {
-            visible: vec![false; n],
-            radius_px: vec![0.0; n],
-            sum_w2: vec![0.0; n],
-            sum_w: vec![0.0; n],
-            n_pixels: vec![0; n],
-        },
-    };
+    let mut out = RenderOutput::blank(w, h, nf, RenderAux::culled(n));
+    let mut ch = vec![0.0f32; nc];
     for p in 0..w * h {
-        let t = f(t_at + p);
-        for k in 0..3 {
-            out.color[p * 3 + k] = f(p * nc + k) + t * settings.background[k];
+        for (c, v) in ch.iter_mut().enumerate() {
+            *v = f(p * nc + c);
         }
-        out.depth[p] = f(p * nc + 3);
-        out.alpha[p] = 1.0 - t;
-        for q in 0..nf {
-            out.features[p * nf + q] = f(p * nc + 4 + q);
-        }
+        out.set_pixel(p, &ch, f(t_at + p), settings.background);
     }
     let a = &mut out.aux;
     for g in 0..n {
@@ -413,33 +395,12 @@ impl DifferentiableRenderer for GpuRenderer {
         if inputs.num_features != nf {
             return Err(Error::Settings("saved forward state belongs to another render".into()));
         }
-        let opt = |name: &'static str, got: &[f32], expected: usize| {
-            if got.is_empty() || got.len() == expected {
-                Ok(())
-            } else {
-                Err(Error::Shape { name, got: got.len(), expected })
-            }
-        };
-        opt("v_color", &v.color, w * h * 3)?;
-        opt("v_alpha", &v.alpha, w * h)?;
-        opt("v_depth", &v.depth, w * h)?;
-        opt("v_features", &v.features, w * h * nf)?;
-        // [H, W, C + 1]: dL/d blended channels, then dL/d alpha with the background term
-        // colour += (1 − alpha)·bg moved into it (as the CPU backward).
+        v.check_shapes(w, h, nf)?;
+        // [H, W, C + 1]: dL/d blended channels, then dL/d alpha (as the CPU backward).
         let mut v_pix = vec![0.0f32; w * h * (nc + 1)];
         for p in 0..w * h {
             let o = p * (nc + 1);
-            let mut va = v.alpha.get(p).copied().unwrap_or(0.0);
-            for k in 0..3 {
-                let vc = v.color.get(p * 3 + k).copied().unwrap_or(0.0);
-                v_pix[o + k] = vc;
-                va -= settings.background[k] * vc;
-            }
-            v_pix[o + 3] = v.depth.get(p).copied().unwrap_or(0.0);
-            for f in 0..nf {
-                v_pix[o + 4 + f] = v.features.get(p * nf + f).copied().unwrap_or(0.0);
-            }
-            v_pix[o + nc] = va;
+            v_pix[o + nc] = v.pixel(p, settings.background, &mut v_pix[o..o + nc]);
         }
         let ctx = &*self.ctx;
         let fresh = frame.bwd.is_none();

@@ -92,9 +92,9 @@ pub fn peak_rss_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
-/// CPU time of this process so far in seconds ([`crate::tools::bench::render::cpu_ms`]).
+/// CPU time of this process so far in seconds ([`crate::tools::bench::cpu_ms`]).
 fn cpu_seconds() -> Option<f64> {
-    crate::tools::bench::render::cpu_ms().map(|ms| ms / 1e3)
+    crate::tools::bench::cpu_ms().map(|ms| ms / 1e3)
 }
 
 /// `usplat4d bench graph`.

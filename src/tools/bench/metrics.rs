@@ -69,9 +69,9 @@ fn test_image(size: usize, channels: usize, seed: u64, noise: f32) -> Image {
     Image { width: size, height: size, channels, data }.quantized()
 }
 
-/// Process CPU time in seconds ([`crate::tools::bench::render::cpu_ms`]).
+/// Process CPU time in seconds ([`crate::tools::bench::cpu_ms`]).
 fn cpu_secs() -> Option<f64> {
-    crate::tools::bench::render::cpu_ms().map(|ms| ms / 1e3)
+    crate::tools::bench::cpu_ms().map(|ms| ms / 1e3)
 }
 
 /// Wall and CPU time of a run, seconds.

@@ -14,6 +14,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use super::{cpu_ms, median_ms};
 use crate::context::Context;
 use crate::render::synthetic::{camera, cloud};
 use crate::render::{CpuRenderer, RenderCamera, RenderSettings, Renderer, SplatInputs};
@@ -21,28 +22,15 @@ use crate::stages::params::Profile;
 use crate::stages::uncertainty::{
     FrameTruth, LoadedTruth, UncertaintySettings, frame_work, pixel_pass,
 };
-use crate::tools::bench::render::{cpu_ms, median_ms};
 
 /// Parameters of `usplat4d bench uncertainty`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+#[serde(rename_all = "kebab-case")]
 pub struct BenchUncertaintyParams {
-    /// Image width of the synthetic rows.
-    #[arg(long, default_value_t = 480)]
-    #[serde(default = "default_width")]
-    pub width: u32,
-    /// Image height of the synthetic rows.
-    #[arg(long, default_value_t = 360)]
-    #[serde(default = "default_height")]
-    pub height: u32,
-    /// Gaussian counts of the synthetic rows, comma-separated (empty: none).
-    #[arg(long, value_delimiter = ',', default_value = "10000,50000,200000")]
-    #[serde(default = "default_counts")]
-    pub counts: Vec<usize>,
-    /// How many times the synthetic clouds' 3σ discs cover the image.
-    #[arg(long, default_value_t = 20.0)]
-    #[serde(default = "default_depth_complexity")]
-    pub depth_complexity: f32,
+    /// The clouds timed (`--counts ''` for none).
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub cloud: super::CloudParams,
     /// Share of the synthetic image's columns whose ground truth differs (fail Eq. 4).
     #[arg(long, default_value_t = 0.3)]
     #[serde(default = "default_fail_fraction")]
@@ -63,36 +51,13 @@ pub struct BenchUncertaintyParams {
     #[arg(long, default_value_t = 4)]
     #[serde(default = "default_frames")]
     pub frames: usize,
-    /// Timed repetitions per frame (the median over all is reported).
-    #[arg(long, default_value_t = 5)]
-    #[serde(default = "default_repeats")]
-    pub repeats: usize,
-    /// Seed of the random clouds.
-    #[arg(long, default_value_t = 0)]
-    #[serde(default)]
-    pub seed: u64,
 }
 
-fn default_width() -> u32 {
-    480
-}
-fn default_height() -> u32 {
-    360
-}
-fn default_counts() -> Vec<usize> {
-    vec![10_000, 50_000, 200_000]
-}
-fn default_depth_complexity() -> f32 {
-    20.0
-}
 fn default_fail_fraction() -> f32 {
     0.3
 }
 fn default_frames() -> usize {
     4
-}
-fn default_repeats() -> usize {
-    5
 }
 
 /// Timings of one table row.
@@ -181,21 +146,19 @@ fn failing_share(
 
 /// Run the benchmark and print the table to stdout.
 pub fn run(p: &BenchUncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
-    if p.repeats == 0 || p.width == 0 || p.height == 0 {
-        anyhow::bail!("--repeats, --width and --height must be positive");
-    }
     if !(0.0..=1.0).contains(&p.fail_fraction) {
         anyhow::bail!("--fail-fraction must be in [0, 1], got {}", p.fail_fraction);
     }
-    if cfg!(debug_assertions) {
-        ctx.warn("debug build: timings are not meaningful (use cargo build --release)");
-    }
-    let s = UncertaintySettings::defaults(p.profile);
+    let (profile, fail_fraction) = (p.profile, p.fail_fraction);
+    let (model_dir, scene_dir, frames) = (&p.model, &p.scene, p.frames);
+    let p = &p.cloud;
+    p.check(ctx)?;
+    let s = UncertaintySettings::defaults(profile);
     let settings = RenderSettings::default();
     println!(
         "uncertainty frame work, profile {:?}, synthetic {}x{} at depth complexity {}, {} \
          threads, median of {} per frame",
-        p.profile,
+        profile,
         p.width,
         p.height,
         p.depth_complexity,
@@ -213,7 +176,7 @@ pub fn run(p: &BenchUncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
         let c = cloud(&cam, n, p.depth_complexity, p.seed);
         let inputs = c.inputs();
         let mut rgb = CpuRenderer.render(&cam, &inputs, &settings)?.color;
-        let fail_cols = (p.fail_fraction * p.width as f32) as usize;
+        let fail_cols = (fail_fraction * p.width as f32) as usize;
         for (i, v) in rgb.iter_mut().enumerate() {
             if (i / 3) % (p.width as usize) < fail_cols {
                 *v = if *v > 0.5 { *v - 0.5 } else { *v + 0.5 };
@@ -229,13 +192,13 @@ pub fn run(p: &BenchUncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    if let (Some(model_dir), Some(scene_dir)) = (&p.model, &p.scene) {
+    if let (Some(model_dir), Some(scene_dir)) = (model_dir, scene_dir) {
         let model = crate::model::Model::load(model_dir)?;
         let scene = crate::scene::Scene::load(scene_dir)?;
         let cams = scene.train_by_frame();
         let g = &model.gaussians;
         let rows: Vec<usize> = (0..g.len()).collect();
-        let frames = p.frames.min(cams.len()).min(model.num_frames());
+        let frames = frames.min(cams.len()).min(model.num_frames());
         let mut row = Row::default();
         let bar = ctx.progress(frames as u64, "bench uncertainty (model)");
         for (t, cam) in cams.iter().enumerate().take(frames) {
