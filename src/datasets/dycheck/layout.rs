@@ -10,7 +10,8 @@
 //! (to rounding of `−O·position`) and its exact images, depth and binary masks.
 //!
 //! Files: `camera/<cam>_<t:05d>.json` (t = our frame = DyCheck time id),
-//! `rgb/{1x,2x}/<name>.png`, `depth/{1x,2x}/<name>.npy` `(H, W, 1)` (training images),
+//! `rgb/{1x,2x}/<name>.png` (colour composited over white, alpha kept: see [`over_white`]),
+//! `depth/{1x,2x}/<name>.npy` `(H, W, 1)` (training images),
 //! `covisible/2x/val/<name>.png` (evaluation images, first channel of their mask),
 //! `splits/{train,val}.json`, `dataset.json`, `metadata.json`, `scene.json`, `extra.json`.
 //! Camera names must be DyCheck camera ids (non-negative integers); the training images
@@ -195,6 +196,21 @@ fn plan(scene: &Scene) -> Result<Vec<Job<'_>>> {
 
 /// Write one image's camera, rgb, depth or covisibility files; training images return the
 /// extent of their depth.
+/// DyCheck's colour is opaque (its alpha marks LiDAR depth, which readers ignore), so a
+/// synthetic image's straight-alpha colour is composited over white, the renderer's
+/// default background; its alpha (the coverage) is kept.
+pub fn over_white(mut img: Image) -> Image {
+    if img.channels == 4 {
+        for px in img.data.chunks_exact_mut(4) {
+            let a = px[3];
+            for c in &mut px[..3] {
+                *c = *c * a + (1.0 - a);
+            }
+        }
+    }
+    img
+}
+
 fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
     let cam = j.cam;
     let (w, h) = (cam.width as usize, cam.height as usize);
@@ -211,6 +227,7 @@ fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
             msg: format!("image is {}x{} but its camera is {w}x{h}", img.width, img.height),
         });
     }
+    let img = over_white(img);
     let png = format!("{}.png", j.name);
     formats::png::write_png(&out.join("rgb/2x").join(&png), &img)?;
     let up = super::resize_nearest(&img.data, w, h, img.channels, w * f, h * f);

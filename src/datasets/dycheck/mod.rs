@@ -42,7 +42,7 @@ pub use keypoints::{
     KEYPOINT_DIR, Keypoint, SceneKeypoints, read_keypoints, read_scene_keypoints,
     to_keypoint_index, to_scene_pixel,
 };
-pub use layout::write_layout;
+pub use layout::{over_white, write_layout};
 pub use sequence::{Entry, Sequence, read_camera_path};
 
 /// Which world frame imported cameras and depth use.
