@@ -43,9 +43,12 @@
 //! records both). `copied` fields (e.g. a seed) have one value whatever the profile and go
 //! to the settings unchanged.
 //!
-//! A new stage (the optimiser's ~40 parameters, say) declares its block the same way in its
-//! own `params.rs`: inputs, then one line per parameter with the §11 row, then `copied`;
-//! its extra checks belong in a [`check`] parser so that clap reports them by option name.
+//! A new stage declares its block the same way in its own `params.rs`: inputs, then one
+//! line per parameter with the §11 row, then `copied`; its extra checks belong in a
+//! [`check`] parser so that clap reports them by option name. A stage whose settings are
+//! grouped (the optimiser's learning rates, loss weights, density control) declares the
+//! flat block and builds its groups from the generated settings
+//! (`stages::optimize::params`).
 
 /// Which defaults a stage's unset parameters take (official-release.md, Sec. 11).
 #[derive(
@@ -248,6 +251,12 @@ impl FromGiven<f32> for Option<f32> {
 impl FromGiven<f64> for Option<f64> {
     fn from_given(c: f64) -> Self {
         (c != 0.0).then_some(c)
+    }
+}
+
+impl FromGiven<u32> for Option<u32> {
+    fn from_given(c: u32) -> Self {
+        (c != 0).then_some(c)
     }
 }
 

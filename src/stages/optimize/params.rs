@@ -1,14 +1,17 @@
-//! Every parameter of `usplat4d optimize` in one place: the CLI/YAML struct
-//! ([`OptimizeParams`], unset values take the profile's defaults) and the resolved settings
-//! ([`OptimizeSettings`]) with the paper and release values side by side and the row of
-//! official-release.md Sec. 11 (or the section) each comes from. Where the paper gives no
-//! value, the paper profile takes the release's (the rule).
+//! Every parameter of `usplat4d optimize`, declared once with
+//! [`stage_params!`](crate::stage_params): its help, paper and release values and the row of
+//! official-release.md Sec. 11 (or the section) it comes from. The macro generates the CLI
+//! struct [`OptimizeParams`] (unset values take the profile's defaults) and the flat
+//! [`OptimizeValues`]; [`OptimizeParams::settings`] groups those into the resolved
+//! [`OptimizeSettings`] (learning rates, L_rgb, the graph objective, density control) that
+//! the training loop reads and the provenance records. Where the paper gives no value, the
+//! paper profile takes the release's (the rule).
 
 use std::path::PathBuf;
 
 use super::graph_loss::{AnchorMetric, GraphSettings, Reduction};
 use super::image_loss::ImageLossWeights;
-use crate::stages::params::Profile;
+use crate::stages::params::{Profile, check};
 
 /// Which objective is optimised.
 #[derive(
@@ -23,185 +26,150 @@ pub enum Recipe {
     Usplat4d,
 }
 
-/// Parameters of `usplat4d optimize`; unset values take the profile's defaults.
-#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
-pub struct OptimizeParams {
-    /// Model directory to start from (gaussians.parquet + trajectories.parquet).
-    #[arg(long, value_name = "MODEL_DIR")]
-    pub model: PathBuf,
-    /// Scene directory (training cameras and images).
-    #[arg(long, value_name = "SCENE_DIR")]
-    pub scene: PathBuf,
-    /// Output model directory (plus training_log.parquet; key_nodes and edges with usplat4d).
-    #[arg(long, value_name = "MODEL_DIR")]
-    pub out: PathBuf,
-    /// Objective.
-    #[arg(long, value_enum)]
-    pub recipe: Recipe,
-    /// Directory holding uncertainty.parquet (usplat4d recipe).
-    #[arg(long, value_name = "DIR")]
-    #[serde(default)]
-    pub uncertainty: Option<PathBuf>,
-    /// Directory holding key_nodes.parquet (usplat4d recipe).
-    #[arg(long, value_name = "DIR")]
-    #[serde(default)]
-    pub keynodes: Option<PathBuf>,
-    /// Directory holding edges.parquet (usplat4d recipe).
-    #[arg(long, value_name = "DIR")]
-    #[serde(default)]
-    pub edges: Option<PathBuf>,
-    /// Optimisation steps [paper and release: 1600 for MoSca].
-    #[arg(long)]
-    pub steps: u32,
-    /// Which defaults the unset parameters take.
-    #[arg(long, value_enum, default_value_t = Profile::Paper, help_heading = "Method")]
-    #[serde(default)]
-    pub profile: Profile,
-    /// Training frames per step, a seeded permutation per epoch [8].
-    #[arg(long, help_heading = "Method")]
-    #[serde(default)]
-    pub batch_frames: Option<usize>,
-    /// Seed of the frame order and the random edge subsets.
-    #[arg(long, default_value_t = 0, help_heading = "Method")]
-    #[serde(default)]
-    pub seed: u64,
-    /// Write a checkpoint (beside the output, `OUT.ckpt/`) every this many steps, 0 for
-    /// none; a run started again resumes from it [100].
-    #[arg(long, help_heading = "Run")]
-    #[serde(default)]
-    pub checkpoint_every: Option<u32>,
-    /// Testing only: abort the process right after the checkpoint of this step.
-    #[arg(long, hide = true)]
-    #[serde(default)]
-    pub abort_after_step: Option<u32>,
-    /// Ablation (c) of the paper's Table 3: anchor and DQB terms without U.
-    #[arg(long, help_heading = "Ablations")]
-    #[serde(default)]
-    pub no_loss_weighting: bool,
-    /// Learning rate of the per-frame positions [1.6e-4; release row 57].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_position: Option<f32>,
-    /// Learning rate of the per-frame rotations [5e-2; release row 57].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_rotation: Option<f32>,
-    /// Learning rate of the log-scales [5e-3; MoSca lr_s, Sec. 5.3].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_scale: Option<f32>,
-    /// Learning rate of the opacity logits [5e-2; MoSca lr_o].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_opacity: Option<f32>,
-    /// Learning rate of the degree-0 colour [2.5e-3; MoSca lr_sph].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_color: Option<f32>,
-    /// Learning rate of the higher SH coefficients [1.25e-4; MoSca lr_sph / 20].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_sh_rest: Option<f32>,
-    /// Learning rate of the graph's own tensors (edge weights, source poses, θ) [1e-4; row 57].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_graph: Option<f32>,
-    /// Learning rate of the learned canonical edge lengths [1.6e-4; `dists_key`, row 57].
-    #[arg(long, help_heading = "Learning rates")]
-    #[serde(default)]
-    pub lr_lengths: Option<f32>,
-    /// λ of the SSIM term in L_rgb [paper 0.2 (SoM), release 0.1; `image_loss` docs].
-    #[arg(long, help_heading = "L_rgb")]
-    #[serde(default)]
-    pub lambda_ssim: Option<f32>,
-    /// Weight of the mask/alpha term [paper 1 (SoM), release 0].
-    #[arg(long, help_heading = "L_rgb")]
-    #[serde(default)]
-    pub lambda_mask: Option<f32>,
-    /// Weight of the scale/shift-invariant depth term [paper 0.5 (SoM), release 0.1].
-    #[arg(long, help_heading = "L_rgb")]
-    #[serde(default)]
-    pub lambda_depth: Option<f32>,
-    /// Weight of the 2D track term [paper 2 (SoM), release 0.1 (iPhone cfg)].
-    #[arg(long, help_heading = "L_rgb")]
-    #[serde(default)]
-    pub lambda_track: Option<f32>,
-    /// Weight of the whole graph loss (its DQB and key-motion terms) [paper 1, release 2;
-    /// row 44]. The key rigidity block's λs follow the profile's motion form (rows 45-50).
-    #[arg(long, help_heading = "Graph")]
-    #[serde(default)]
-    pub lambda_graph: Option<f32>,
-    /// Weight of the key anchor ‖p − p°‖ in fine-tuning [paper 1, release 0 (prep only);
-    /// rows 39-40].
-    #[arg(long, help_heading = "Graph")]
-    #[serde(default)]
-    pub key_anchor_weight: Option<f32>,
-    /// Weight of the non-key anchor ‖p − p°‖ [paper 1, release 0; row 41].
-    #[arg(long, help_heading = "Graph")]
-    #[serde(default)]
-    pub nonkey_anchor_weight: Option<f32>,
-    /// Metric of the anchor and DQB deviations [paper paper-literal, release release;
-    /// rows 15-17]; `--no-loss-weighting` makes it euclidean.
-    #[arg(long, value_enum, help_heading = "Graph")]
-    #[serde(default)]
-    pub anchor_metric: Option<AnchorMetric>,
-    /// Reduction of the anchor and DQB sums over (t, i) [paper sum (Σ_t Σ_i as Eqs. 9 and
-    /// 11 are written), release mean].
-    #[arg(long, value_enum, help_heading = "Graph")]
-    #[serde(default)]
-    pub graph_reduction: Option<Reduction>,
-    /// Depth ratio r_z of U [paper 0.01, release 0.1; row 15].
-    #[arg(long, help_heading = "Graph")]
-    #[serde(default)]
-    pub r_z: Option<f32>,
-    /// λ_vel of the usplat4d recipe [paper 0.01, release 100; row 52]; the vanilla recipe
-    /// uses App. A.2's 0.01.
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub lambda_vel: Option<f32>,
-    /// λ_acc of the usplat4d recipe [paper 0.01, release 1; row 53]; vanilla 0.01.
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub lambda_acc: Option<f32>,
-    /// Fraction of the key-key edges kept each step [paper 1, release 0.8; row 51].
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub edge_keep_ratio: Option<f32>,
-    /// Neighbours of the vanilla recipe's kNN motion graph [8].
-    #[arg(long, help_heading = "Motion")]
-    #[serde(default)]
-    pub knn_k: Option<usize>,
-    /// Density control starts at this fraction of the steps [paper 0.1, release 0.01; row 59].
-    #[arg(long, help_heading = "Density control")]
-    #[serde(default)]
-    pub density_start: Option<f32>,
-    /// Density control ends at this fraction of the steps [0.8; both profiles].
-    #[arg(long, help_heading = "Density control")]
-    #[serde(default)]
-    pub density_end: Option<f32>,
-    /// Densify and prune every this many steps [300; release Sec. 5.3].
-    #[arg(long, help_heading = "Density control")]
-    #[serde(default)]
-    pub densify_every: Option<u32>,
-    /// Reset opacities every this many steps, 0 for never [1000; release Sec. 5.3].
-    #[arg(long, help_heading = "Density control")]
-    #[serde(default)]
-    pub opacity_reset_every: Option<u32>,
-    /// Mean screen-space (NDC) position-gradient norm above which a Gaussian is densified
-    /// [2e-4; release Sec. 5.3].
-    #[arg(long, help_heading = "Density control")]
-    #[serde(default)]
-    pub densify_grad: Option<f32>,
-    /// Largest scale, as a fraction of the scene extent, of a Gaussian that is cloned (larger
-    /// ones are split) [0.01; release percent_dense].
-    #[arg(long, help_heading = "Density control")]
-    #[serde(default)]
-    pub percent_dense: Option<f32>,
-    /// Prune Gaussians whose opacity falls below this [0.01; release Sec. 5.3].
-    #[arg(long, help_heading = "Density control")]
-    #[serde(default)]
-    pub prune_opacity: Option<f32>,
+crate::stage_params! {
+    /// Parameters of `usplat4d optimize`; unset values take the profile's defaults.
+    pub struct OptimizeParams;
+    /// The parameters' values: the profile's defaults with the given ones applied
+    /// ([`OptimizeParams::settings`] groups them into [`OptimizeSettings`]).
+    pub struct OptimizeValues;
+    inputs {
+        /// Model directory to start from (gaussians.parquet + trajectories.parquet).
+        #[arg(long, value_name = "MODEL_DIR")]
+        model: PathBuf,
+        /// Scene directory (training cameras and images).
+        #[arg(long, value_name = "SCENE_DIR")]
+        scene: PathBuf,
+        /// Output model directory (plus training_log.parquet; key_nodes and edges with usplat4d).
+        #[arg(long, value_name = "MODEL_DIR")]
+        out: PathBuf,
+        /// Objective.
+        #[arg(long, value_enum)]
+        recipe: Recipe,
+        /// Directory holding uncertainty.parquet (usplat4d recipe).
+        #[arg(long, value_name = "DIR")]
+        uncertainty: Option<PathBuf>,
+        /// Directory holding key_nodes.parquet (usplat4d recipe).
+        #[arg(long, value_name = "DIR")]
+        keynodes: Option<PathBuf>,
+        /// Directory holding edges.parquet (usplat4d recipe).
+        #[arg(long, value_name = "DIR")]
+        edges: Option<PathBuf>,
+        /// Optimisation steps [paper and release: 1600 for MoSca].
+        #[arg(long)]
+        steps: u32,
+        /// Testing only: abort the process right after the checkpoint of this step.
+        #[arg(long, hide = true)]
+        abort_after_step: Option<u32>,
+        /// Ablation (c) of the paper's Table 3: anchor and DQB terms without U.
+        #[arg(long, help_heading = "Ablations")]
+        no_loss_weighting: bool,
+    }
+    params {
+        /// Training frames per step, a seeded permutation per epoch.
+        batch_frames: usize => usize [check::parsed]
+            { paper "8", release "8", row "", heading "Method" },
+        /// Write a checkpoint (beside the output, `OUT.ckpt/`) every this many steps, 0 for
+        /// none; a run started again resumes from it.
+        checkpoint_every: u32 => Option<u32> [check::parsed]
+            { paper "100", release "100", row "", heading "Run" },
+        /// Learning rate of the per-frame positions (the paper gives none: the release's).
+        lr_position: f32 => f32 [check::parsed]
+            { paper "1.6e-4", release "1.6e-4", row "57", heading "Learning rates" },
+        /// Learning rate of the per-frame rotations.
+        lr_rotation: f32 => f32 [check::parsed]
+            { paper "5e-2", release "5e-2", row "57", heading "Learning rates" },
+        /// Learning rate of the log-scales (MoSca lr_s, official-release §5.3).
+        lr_scale: f32 => f32 [check::parsed]
+            { paper "5e-3", release "5e-3", row "", heading "Learning rates" },
+        /// Learning rate of the opacity logits (MoSca lr_o).
+        lr_opacity: f32 => f32 [check::parsed]
+            { paper "5e-2", release "5e-2", row "", heading "Learning rates" },
+        /// Learning rate of the degree-0 colour (MoSca lr_sph).
+        lr_color: f32 => f32 [check::parsed]
+            { paper "2.5e-3", release "2.5e-3", row "", heading "Learning rates" },
+        /// Learning rate of the higher SH coefficients (MoSca lr_sph / 20, 2.5e-3 / 20 in
+        /// f32).
+        lr_sh_rest: f32 => f32 [check::parsed]
+            { paper "1.2499999e-4", release "1.2499999e-4", row "", heading "Learning rates" },
+        /// Learning rate of the graph's own tensors (edge weights, source poses, θ).
+        lr_graph: f32 => f32 [check::parsed]
+            { paper "1e-4", release "1e-4", row "57", heading "Learning rates" },
+        /// Learning rate of the learned canonical edge lengths (`dists_key`).
+        lr_lengths: f32 => f32 [check::parsed]
+            { paper "1.6e-4", release "1.6e-4", row "57", heading "Learning rates" },
+        /// λ of the SSIM term in L_rgb (paper: SoM's; `image_loss` docs).
+        lambda_ssim: f64 => f64 [check::parsed]
+            { paper "0.2", release "0.1", row "", heading "L_rgb" },
+        /// Weight of the mask/alpha term (paper: SoM's).
+        lambda_mask: f64 => f64 [check::parsed]
+            { paper "1", release "0", row "", heading "L_rgb" },
+        /// Weight of the scale/shift-invariant depth term (paper: SoM's).
+        lambda_depth: f64 => f64 [check::parsed]
+            { paper "0.5", release "0.1", row "", heading "L_rgb" },
+        /// Weight of the 2D track term (paper: SoM's; release: the iPhone config).
+        lambda_track: f64 => f64 [check::parsed]
+            { paper "2", release "0.1", row "", heading "L_rgb" },
+        /// Weight of the whole graph loss (its DQB and key-motion terms); the key rigidity
+        /// block's λs follow the profile's motion form (rows 45-50).
+        lambda_graph: f64 => f64 [check::parsed]
+            { paper "1", release "2", row "44", heading "Graph" },
+        /// Weight of the key anchor ‖p − p°‖ in fine-tuning (release: prep only; rows 39-40).
+        key_anchor_weight: f64 => f64 [check::parsed]
+            { paper "1", release "0", row "39", heading "Graph" },
+        /// Weight of the non-key anchor ‖p − p°‖.
+        nonkey_anchor_weight: f64 => f64 [check::parsed]
+            { paper "1", release "0", row "41", heading "Graph" },
+        /// Metric of the anchor and DQB deviations (paper-literal, release, euclidean; rows
+        /// 15-17); `--no-loss-weighting` makes it euclidean.
+        anchor_metric: AnchorMetric => AnchorMetric [check::choice]
+            { paper "paper-literal", release "release", row "15", heading "Graph" },
+        /// Reduction of the anchor and DQB sums over (t, i) (sum: Σ_t Σ_i as Eqs. 9 and 11
+        /// are written; mean).
+        graph_reduction: Reduction => Reduction [check::choice]
+            { paper "sum", release "mean", row "", heading "Graph" },
+        /// Depth ratio r_z of U.
+        r_z: f64 => f64 [check::parsed]
+            { paper "0.01", release "0.1", row "15", heading "Graph" },
+        /// λ_vel of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
+        lambda_vel: f64 => f64 [check::parsed]
+            { paper "0.01", release "100", row "52", heading "Motion" },
+        /// λ_acc of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
+        lambda_acc: f64 => f64 [check::parsed]
+            { paper "0.01", release "1", row "53", heading "Motion" },
+        /// Fraction of the key-key edges kept each step.
+        edge_keep_ratio: f64 => f64 [check::parsed]
+            { paper "1", release "0.8", row "51", heading "Motion" },
+        /// Neighbours of the vanilla recipe's kNN motion graph.
+        knn_k: usize => usize [check::parsed]
+            { paper "8", release "8", row "", heading "Motion" },
+        /// Density control starts at this fraction of the steps.
+        density_start: f32 => f32 [check::parsed]
+            { paper "0.1", release "0.01", row "59", heading "Density control" },
+        /// Density control ends at this fraction of the steps.
+        density_end: f32 => f32 [check::parsed]
+            { paper "0.8", release "0.8", row "59", heading "Density control" },
+        /// Densify and prune every this many steps (official-release §5.3).
+        densify_every: u32 => u32 [check::parsed]
+            { paper "300", release "300", row "", heading "Density control" },
+        /// Reset opacities every this many steps, 0 for never (official-release §5.3).
+        opacity_reset_every: u32 => Option<u32> [check::parsed]
+            { paper "1000", release "1000", row "", heading "Density control" },
+        /// Mean screen-space (NDC) position-gradient norm above which a Gaussian is densified
+        /// (official-release §5.3).
+        densify_grad: f32 => f32 [check::parsed]
+            { paper "2e-4", release "2e-4", row "", heading "Density control" },
+        /// Largest scale, as a fraction of the scene extent, of a Gaussian that is cloned
+        /// (larger ones are split; release percent_dense).
+        percent_dense: f32 => f32 [check::parsed]
+            { paper "0.01", release "0.01", row "", heading "Density control" },
+        /// Prune Gaussians whose opacity falls below this (official-release §5.3).
+        prune_opacity: f32 => f32 [check::parsed]
+            { paper "0.01", release "0.01", row "", heading "Density control" },
+    }
+    copied {
+        /// Seed of the frame order and the random edge subsets.
+        seed: u64 [check::parsed] { default "0", heading "Method" },
+    }
 }
 
 /// Resolved settings of `usplat4d optimize` (recorded in the output's provenance and in the
@@ -298,123 +266,81 @@ impl DensitySettings {
 }
 
 impl OptimizeSettings {
-    /// The defaults of `profile` for `recipe` (official-release.md Sec. 11 rows 39-60 and
-    /// Sec. 5.3; paper App. A.2, A.3 and B).
+    /// The defaults of `profile` for `recipe` (the declared values of [`OptimizeParams`]:
+    /// official-release.md Sec. 11 rows 39-60 and Sec. 5.3; paper App. A.2, A.3 and B),
+    /// `steps` 0.
     pub fn defaults(profile: Profile, recipe: Recipe) -> Self {
-        let paper = profile == Profile::Paper;
-        let pr = |p: f32, r: f32| if paper { p } else { r };
+        Self::group(OptimizeValues::defaults(profile), recipe, 0, false)
+    }
+
+    /// The settings of the parameters' values `v`: the learning rates and density control
+    /// as they are, L_rgb's and the graph objective's over their profile's defaults (which
+    /// hold the forms that have no option).
+    fn group(v: OptimizeValues, recipe: Recipe, steps: u32, no_loss_weighting: bool) -> Self {
+        let g = GraphSettings::defaults(v.profile);
+        // λ_graph scales the graph loss's weights relative to the profile's own λ_graph.
+        let lg = v.lambda_graph / OptimizeValues::defaults(v.profile).lambda_graph;
         OptimizeSettings {
             recipe,
-            profile,
-            steps: 0,
-            batch_frames: 8,
-            seed: 0,
-            checkpoint_every: Some(100),
-            no_loss_weighting: false,
+            profile: v.profile,
+            steps,
+            batch_frames: v.batch_frames,
+            seed: v.seed,
+            checkpoint_every: v.checkpoint_every,
+            no_loss_weighting,
             lr: LearningRates {
-                position: 1.6e-4,
-                rotation: 5e-2,
-                scale: 5e-3,
-                opacity: 5e-2,
-                color: 2.5e-3,
-                sh_rest: 2.5e-3 / 20.0,
-                graph: 1e-4,
-                lengths: 1.6e-4,
+                position: v.lr_position,
+                rotation: v.lr_rotation,
+                scale: v.lr_scale,
+                opacity: v.lr_opacity,
+                color: v.lr_color,
+                sh_rest: v.lr_sh_rest,
+                graph: v.lr_graph,
+                lengths: v.lr_lengths,
             },
-            image: ImageLossWeights::defaults(profile),
-            graph: GraphSettings::defaults(profile),
-            knn_k: 8,
+            image: ImageLossWeights {
+                ssim_lambda: v.lambda_ssim,
+                mask: v.lambda_mask,
+                depth: v.lambda_depth,
+                track: v.lambda_track,
+                ..ImageLossWeights::defaults(v.profile)
+            },
+            graph: GraphSettings {
+                anchor_metric: if no_loss_weighting {
+                    AnchorMetric::Euclidean
+                } else {
+                    v.anchor_metric
+                },
+                r_xyz: [g.r_xyz[0], g.r_xyz[1], v.r_z],
+                reduction: v.graph_reduction,
+                key_anchor: v.key_anchor_weight,
+                nonkey_anchor: v.nonkey_anchor_weight,
+                dqb: lg * g.dqb,
+                dqb_rotation: lg * g.dqb_rotation,
+                key_motion: lg * g.key_motion,
+                lambda_vel_acc: [v.lambda_vel, v.lambda_acc],
+                edge_keep_ratio: v.edge_keep_ratio,
+                ..g
+            },
+            knn_k: v.knn_k,
             density: DensitySettings {
-                start: pr(0.10, 0.01),
-                end: 0.8,
-                every: 300,
-                opacity_reset_every: Some(1000),
-                grad: 2e-4,
-                percent_dense: 0.01,
-                prune_opacity: 0.01,
+                start: v.density_start,
+                end: v.density_end,
+                every: v.densify_every,
+                opacity_reset_every: v.opacity_reset_every,
+                grad: v.densify_grad,
+                percent_dense: v.percent_dense,
+                prune_opacity: v.prune_opacity,
             },
         }
     }
 }
 
 impl OptimizeParams {
-    /// The graph objective's settings: the profile's, with the overrides applied.
-    fn graph_settings(&self, d: &OptimizeSettings) -> GraphSettings {
-        let g = &d.graph;
-        let base_lambda = if self.profile == Profile::Paper { 1.0 } else { 2.0 };
-        let lg = self.lambda_graph.map_or(1.0, |l| l as f64 / base_lambda);
-        let f = |v: Option<f32>, d: f64| v.map_or(d, f64::from);
-        GraphSettings {
-            anchor_metric: if self.no_loss_weighting {
-                AnchorMetric::Euclidean
-            } else {
-                self.anchor_metric.unwrap_or(g.anchor_metric)
-            },
-            r_xyz: [g.r_xyz[0], g.r_xyz[1], f(self.r_z, g.r_xyz[2])],
-            reduction: self.graph_reduction.unwrap_or(g.reduction),
-            key_anchor: f(self.key_anchor_weight, g.key_anchor),
-            nonkey_anchor: f(self.nonkey_anchor_weight, g.nonkey_anchor),
-            dqb: lg * g.dqb,
-            dqb_rotation: lg * g.dqb_rotation,
-            key_motion: lg * g.key_motion,
-            lambda_vel_acc: [
-                f(self.lambda_vel, g.lambda_vel_acc[0]),
-                f(self.lambda_acc, g.lambda_vel_acc[1]),
-            ],
-            edge_keep_ratio: f(self.edge_keep_ratio, g.edge_keep_ratio),
-            ..g.clone()
-        }
-    }
-
-    /// The profile's defaults with the overrides applied, checked.
-    pub fn resolve(&self) -> anyhow::Result<OptimizeSettings> {
-        let d = OptimizeSettings::defaults(self.profile, self.recipe);
-        let or = |v: Option<f32>, d: f32| v.unwrap_or(d);
-        let s = OptimizeSettings {
-            recipe: self.recipe,
-            profile: self.profile,
-            steps: self.steps,
-            batch_frames: self.batch_frames.unwrap_or(d.batch_frames),
-            seed: self.seed,
-            checkpoint_every: match self.checkpoint_every {
-                Some(0) => None,
-                Some(k) => Some(k),
-                None => d.checkpoint_every,
-            },
-            no_loss_weighting: self.no_loss_weighting,
-            lr: LearningRates {
-                position: or(self.lr_position, d.lr.position),
-                rotation: or(self.lr_rotation, d.lr.rotation),
-                scale: or(self.lr_scale, d.lr.scale),
-                opacity: or(self.lr_opacity, d.lr.opacity),
-                color: or(self.lr_color, d.lr.color),
-                sh_rest: or(self.lr_sh_rest, d.lr.sh_rest),
-                graph: or(self.lr_graph, d.lr.graph),
-                lengths: or(self.lr_lengths, d.lr.lengths),
-            },
-            image: ImageLossWeights {
-                ssim_lambda: self.lambda_ssim.map_or(d.image.ssim_lambda, f64::from),
-                mask: self.lambda_mask.map_or(d.image.mask, f64::from),
-                depth: self.lambda_depth.map_or(d.image.depth, f64::from),
-                track: self.lambda_track.map_or(d.image.track, f64::from),
-                ..d.image
-            },
-            graph: self.graph_settings(&d),
-            knn_k: self.knn_k.unwrap_or(d.knn_k),
-            density: DensitySettings {
-                start: or(self.density_start, d.density.start),
-                end: or(self.density_end, d.density.end),
-                every: self.densify_every.unwrap_or(d.density.every),
-                opacity_reset_every: match self.opacity_reset_every {
-                    Some(0) => None,
-                    Some(k) => Some(k),
-                    None => d.density.opacity_reset_every,
-                },
-                grad: or(self.densify_grad, d.density.grad),
-                percent_dense: or(self.percent_dense, d.density.percent_dense),
-                prune_opacity: or(self.prune_opacity, d.density.prune_opacity),
-            },
-        };
+    /// The profile's defaults with the given values applied, grouped and checked.
+    pub fn settings(&self) -> anyhow::Result<OptimizeSettings> {
+        let v = self.resolve()?;
+        let s = OptimizeSettings::group(v, self.recipe, self.steps, self.no_loss_weighting);
         if s.batch_frames == 0 {
             anyhow::bail!("batch-frames must be at least 1");
         }
@@ -466,6 +392,44 @@ mod tests {
         assert_eq!((p.graph.lambda_vel_acc, r.graph.lambda_vel_acc), ([0.01, 0.01], [100.0, 1.0]));
         assert_eq!((p.density.start, r.density.start), (0.10, 0.01));
         assert_eq!(p.lr, r.lr, "the paper gives no learning rates: both use the release's");
+    }
+
+    #[test]
+    fn declared_values_are_the_objectives_defaults() {
+        for profile in [Profile::Paper, Profile::Release] {
+            let s = OptimizeSettings::defaults(profile, Recipe::Usplat4d);
+            assert_eq!(s.graph, GraphSettings::defaults(profile), "{profile:?}");
+            assert_eq!(s.image, ImageLossWeights::defaults(profile), "{profile:?}");
+        }
+    }
+
+    #[test]
+    fn given_values_override_the_profile() {
+        let args = ["--model", "m", "--scene", "s", "--out", "o", "--steps", "10"];
+        let parse = |extra: &[&str]| {
+            let all: Vec<&str> = args.iter().chain(extra).copied().collect();
+            crate::stages::params::parse_args::<OptimizeParams>(&all).unwrap().settings()
+        };
+        let s =
+            parse(&["--recipe", "vanilla", "--profile", "release", "--lambda-graph", "3"]).unwrap();
+        let r = GraphSettings::defaults(Profile::Release);
+        assert_eq!((s.graph.dqb, s.graph.key_motion), (1.5 * r.dqb, 1.5 * r.key_motion));
+        let s = parse(&[
+            "--recipe",
+            "vanilla",
+            "--no-loss-weighting",
+            "--checkpoint-every",
+            "0",
+            "--r-z",
+            "0.5",
+        ])
+        .unwrap();
+        assert_eq!(s.graph.anchor_metric, AnchorMetric::Euclidean);
+        assert_eq!((s.checkpoint_every, s.graph.r_xyz[2]), (None, 0.5));
+        let e = parse(&["--recipe", "vanilla", "--batch-frames", "0"]).unwrap_err();
+        assert!(e.to_string().contains("batch-frames"), "{e}");
+        let e = parse(&["--recipe", "usplat4d", "--uncertainty", "u"]).unwrap_err();
+        assert!(e.to_string().contains("--keynodes"), "{e}");
     }
 
     #[test]

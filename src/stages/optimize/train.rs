@@ -236,7 +236,7 @@ fn new_adam(state: &TrainState, s: &OptimizeSettings) -> Adam {
 /// `usplat4d optimize`.
 pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     let _span = tracing::info_span!("optimize").entered();
-    let s = p.resolve()?;
+    let s = p.settings()?;
     let model = Model::load(&p.model)?;
     let scene = Scene::load(&p.scene)?;
     let views = TrainingViews::new(&scene, &model)?;
