@@ -10,9 +10,8 @@ use usplat4d::formats::png::{Image, read_png, write_png};
 use usplat4d::scene::{GtAlpha, Scene};
 use usplat4d::stages::optimize::step::TrainingViews;
 use usplat4d::tables::Provenance;
-use usplat4d::tables::uncertainty::UncertaintyReader;
 
-use crate::util::Dir;
+use crate::util::{Dir, converged_and_u};
 
 /// The training images of `scene` set to `renders` (opaque colour over white), with alpha
 /// 0 on the left half when `holes`; the scene saved with `mode`.
@@ -39,14 +38,7 @@ fn uncertainty(dir: &Dir, scene: &str, out: &str) -> (Vec<bool>, Vec<f32>) {
     let tau = ["--cover-min-weight", "0"];
     dir.ok(&[&["uncertainty", "--model", "demo/model", "--scene", scene, "--out", out], &tau[..]]
         .concat());
-    let r = UncertaintyReader::open(&dir.join(out).join("uncertainty.parquet")).unwrap();
-    let (mut c, mut u) = (Vec::new(), Vec::new());
-    for t in 0..r.num_frames() {
-        let f = r.frame(t).unwrap();
-        c.extend(f.converged);
-        u.extend(f.u);
-    }
-    (c, u)
+    converged_and_u(&dir.join(out))
 }
 
 #[test]

@@ -15,9 +15,8 @@ use usplat4d::scene::Scene;
 use usplat4d::stages::optimize::step::TrainingViews;
 use usplat4d::tables::Provenance;
 use usplat4d::tables::model_cameras::{ModelCamera, Similarity};
-use usplat4d::tables::uncertainty::UncertaintyReader;
 
-use crate::util::Dir;
+use crate::util::{Dir, converged_and_u};
 
 /// `demo/model` moved by `sim` into `moved/`, with the scene's training cameras in the
 /// model's frame as its own cameras.
@@ -67,14 +66,7 @@ fn moved_model(dir: &Dir, sim: &Similarity) {
 /// `(converged, u)` over all frames of an uncertainty run of `model`.
 fn uncertainty(dir: &Dir, model: &str, out: &str) -> (Vec<bool>, Vec<f32>) {
     dir.ok(&["uncertainty", "--model", model, "--scene", "demo/scene", "--out", out]);
-    let r = UncertaintyReader::open(&dir.join(out).join("uncertainty.parquet")).unwrap();
-    let (mut c, mut u) = (Vec::new(), Vec::new());
-    for t in 0..r.num_frames() {
-        let f = r.frame(t).unwrap();
-        c.extend(f.converged);
-        u.extend(f.u);
-    }
-    (c, u)
+    converged_and_u(&dir.join(out))
 }
 
 #[test]

@@ -108,3 +108,17 @@ pub fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// `(converged, u)` of every frame of the `uncertainty` output in `dir`, in row order.
+#[allow(dead_code)]
+pub fn converged_and_u(dir: &Path) -> (Vec<bool>, Vec<f32>) {
+    let path = dir.join("uncertainty.parquet");
+    let r = usplat4d::tables::uncertainty::UncertaintyReader::open(&path).unwrap();
+    let (mut c, mut u) = (Vec::new(), Vec::new());
+    for t in 0..r.num_frames() {
+        let f = r.frame(t).unwrap();
+        c.extend(f.converged);
+        u.extend(f.u);
+    }
+    (c, u)
+}

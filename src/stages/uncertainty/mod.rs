@@ -196,7 +196,7 @@ pub fn normalise(frames: &mut [UncertaintyFrame], target: f32, clip: f32, phi: f
 }
 
 /// The release's extra gates ANDed into `pass` `[H, W]`: SSIM of every channel above
-/// `ssim`, depth gradient below its `percentile` over the mask, mask ≥ 0.5.
+/// `ssim`, depth gradient below its `percentile` over the mask's valid depth, mask ≥ 0.5.
 pub fn apply_gates(
     pass: &mut [bool],
     rendered: &[f32],
@@ -214,8 +214,16 @@ pub fn apply_gates(
     }
     if let (Some(pct), Some(d)) = (s.depth_edge_percentile, depth) {
         let g = filter::sobel_magnitude(d, w, h);
-        let mut inside: Vec<f32> =
-            g.iter().zip(mask).filter(|(_, m)| **m).map(|(v, _)| *v).collect();
+        // over the mask where the depth is valid: DyCheck's depth is 0 where the LiDAR has
+        // none, and a frame without a mask would otherwise take its quantile over an empty
+        // background, a limit of 0 that fails every pixel
+        let mut inside: Vec<f32> = g
+            .iter()
+            .zip(mask)
+            .zip(d)
+            .filter(|((_, m), z)| **m && **z > 0.0 && z.is_finite())
+            .map(|((v, _), _)| *v)
+            .collect();
         if !inside.is_empty() {
             let limit = stats::quantile(&mut inside, pct as f64 / 100.0);
             for (p, v) in pass.iter_mut().zip(&g) {
@@ -464,5 +472,22 @@ mod tests {
         assert!(!pass[3], "masked out");
         assert!(!pass[w + 8] && !pass[w + 7], "depth edge");
         assert!(pass[w + 2] && pass[w + 13]);
+    }
+
+    /// A DyCheck frame: no mask, and depth only on the object (0 = no LiDAR). The depth-edge
+    /// quantile is taken over the valid depth, so the object's interior passes; over the
+    /// whole frame it would be 0 and fail every pixel.
+    #[test]
+    fn depth_edge_gate_ignores_missing_depth() {
+        let r = UncertaintySettings::defaults(Profile::Release);
+        let (w, h) = (32, 32);
+        let img = vec![0.5; w * h * 3];
+        let object = |i: usize| (12..20).contains(&(i % w)) && (12..20).contains(&(i / w));
+        let depth: Vec<f32> =
+            (0..w * h).map(|i| if object(i) { 2.0 + (i % w) as f32 * 1e-3 } else { 0.0 }).collect();
+        let mut pass = vec![true; w * h];
+        apply_gates(&mut pass, &img, &img, Some(&depth), &vec![true; w * h], (w, h), &r);
+        assert!(pass[15 * w + 15], "object interior passes");
+        assert!(!pass[12 * w + 12], "silhouette fails");
     }
 }
