@@ -214,6 +214,28 @@ impl Model {
     }
 }
 
+/// A three-Gaussian, two-frame model with SH degree 1, for tests.
+#[cfg(test)]
+pub(crate) fn sample_model() -> (Gaussians, Vec<FrameState>) {
+    let g = Gaussians {
+        id: vec![7, 3, 11],
+        dynamic: vec![true, false, true],
+        scale: vec![[0.1, 0.2, 0.3]; 3],
+        opacity: vec![0.5, 1.0, 0.0],
+        color: vec![[1.0, 0.5, 0.0]; 3],
+        sh_degree: 1,
+        sh_rest: (0..27).map(|i| i as f32 * 0.01).collect(),
+    };
+    let frames = (0..2)
+        .map(|t| FrameState {
+            frame: t,
+            position: vec![[t as f32, 1.0, 2.0]; 3],
+            rotation: vec![[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.5, 0.5, 0.5, 0.5]],
+        })
+        .collect();
+    (g, frames)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -222,7 +244,7 @@ mod tests {
     /// [`Model::splat_inputs`] hands the renderer.
     #[test]
     fn sh_frame_is_a_model_property() {
-        let (mut g, frames) = crate::table_tests::sample_model();
+        let (mut g, frames) = sample_model();
         g.sh_degree = 1;
         g.sh_rest = vec![0.1; g.len() * 9];
         for (name, prov, want) in [

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::model::{FrameState, Gaussians, Model};
+use crate::model::{FrameState, Model, sample_model};
 use crate::scene::{Camera, Scene, Split};
 use crate::tables::io::{self, TableReader};
 use crate::tables::*;
@@ -66,26 +66,6 @@ pub(crate) fn sample_cameras() -> Vec<Camera> {
             distortion: (i == 1).then_some([0.1, 0.0, 0.0, 0.001, 0.0]),
         })
         .collect()
-}
-
-pub(crate) fn sample_model() -> (Gaussians, Vec<FrameState>) {
-    let g = Gaussians {
-        id: vec![7, 3, 11],
-        dynamic: vec![true, false, true],
-        scale: vec![[0.1, 0.2, 0.3]; 3],
-        opacity: vec![0.5, 1.0, 0.0],
-        color: vec![[1.0, 0.5, 0.0]; 3],
-        sh_degree: 1,
-        sh_rest: (0..27).map(|i| i as f32 * 0.01).collect(),
-    };
-    let frames = (0..2)
-        .map(|t| FrameState {
-            frame: t,
-            position: vec![[t as f32, 1.0, 2.0]; 3],
-            rotation: vec![[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.5, 0.5, 0.5, 0.5]],
-        })
-        .collect();
-    (g, frames)
 }
 
 #[test]

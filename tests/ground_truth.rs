@@ -11,7 +11,7 @@ use usplat4d::scene::{GtAlpha, Scene};
 use usplat4d::stages::optimize::step::TrainingViews;
 use usplat4d::tables::Provenance;
 
-use crate::util::{Dir, converged_and_u};
+use crate::util::{Dir, converged_and_u, demo_with_training_renders};
 
 /// The training images of `scene` set to `renders` (opaque colour over white), with alpha
 /// 0 on the left half when `holes`; the scene saved with `mode`.
@@ -44,18 +44,7 @@ fn uncertainty(dir: &Dir, scene: &str, out: &str) -> (Vec<bool>, Vec<f32>) {
 #[test]
 fn dycheck_alpha_is_not_coverage() {
     let dir = Dir::new();
-    usplat4d::datasets::demo::write_demo_scene(&dir.join("demo"), 3).unwrap();
-    dir.ok(&[
-        "render",
-        "--model",
-        "demo/model",
-        "--scene",
-        "demo/scene",
-        "--out",
-        "R",
-        "--split",
-        "train",
-    ]);
+    demo_with_training_renders(&dir);
     set_images(&dir, "demo/scene", false, GtAlpha::Coverage);
     let reference = uncertainty(&dir, "demo/scene", "U_ref");
     let seen = reference.0.iter().filter(|c| **c).count();

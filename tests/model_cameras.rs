@@ -16,7 +16,7 @@ use usplat4d::stages::optimize::step::TrainingViews;
 use usplat4d::tables::Provenance;
 use usplat4d::tables::model_cameras::{ModelCamera, Similarity};
 
-use crate::util::{Dir, converged_and_u};
+use crate::util::{Dir, converged_and_u, demo_with_training_renders};
 
 /// `demo/model` moved by `sim` into `moved/`, with the scene's training cameras in the
 /// model's frame as its own cameras.
@@ -72,19 +72,8 @@ fn uncertainty(dir: &Dir, model: &str, out: &str) -> (Vec<bool>, Vec<f32>) {
 #[test]
 fn stages_render_with_the_models_own_cameras() {
     let dir = Dir::new();
-    usplat4d::datasets::demo::write_demo_scene(&dir.join("demo"), 3).unwrap();
     // the scene's ground truth is the demo model's own render, so it converges everywhere
-    dir.ok(&[
-        "render",
-        "--model",
-        "demo/model",
-        "--scene",
-        "demo/scene",
-        "--out",
-        "R",
-        "--split",
-        "train",
-    ]);
+    demo_with_training_renders(&dir);
     let scene = Scene::load(&dir.join("demo/scene")).unwrap();
     for cam in scene.train() {
         let to = scene.resolve(&cam.image_path);

@@ -122,3 +122,21 @@ pub fn converged_and_u(dir: &Path) -> (Vec<bool>, Vec<f32>) {
     }
     (c, u)
 }
+
+/// The three-frame demo scene and model in `dir/demo`, with the model rendered into the
+/// training cameras under `dir/R` (scene-relative image paths).
+#[allow(dead_code)]
+pub fn demo_with_training_renders(dir: &Dir) {
+    usplat4d::datasets::demo::write_demo_scene(&dir.join("demo"), 3).unwrap();
+    dir.ok(&[
+        "render",
+        "--model",
+        "demo/model",
+        "--scene",
+        "demo/scene",
+        "--out",
+        "R",
+        "--split",
+        "train",
+    ]);
+}

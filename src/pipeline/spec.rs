@@ -293,13 +293,11 @@ impl Schema<'_> {
             let key = |k: &str| format!("{ctx}`{k}`");
             let foreach = match foreach.filter(|f| !matches!(f.value, Node::Null)) {
                 None => None,
-                Some(f) => match &f.value {
-                    Node::Seq(items) => {
+                Some(f) => match (&f.value, scalar_list_reference(&f.value)) {
+                    (Node::Seq(items), _) => {
                         Some(Foreach::Items(self.items(items, &format!("{ctx}`foreach` item"))?))
                     }
-                    Node::Scalar(s) if list_reference(s).is_some() => {
-                        Some(Foreach::Param(list_reference(s).unwrap_or_default().to_string()))
-                    }
+                    (_, Some(name)) => Some(Foreach::Param(name.to_string())),
                     _ => {
                         return Err(self.expected(
                             f,
@@ -527,6 +525,14 @@ impl Pipeline {
 /// named `y` or `no` stays a string) and numbers with leading zeros kept as strings (`007`).
 fn yaml_options() -> serde_saphyr::Options {
     serde_saphyr::options! { with_snippet: false, strict_booleans: true, leading_zero_numbers_as_strings: true }
+}
+
+/// The list parameter a scalar node names as `${name}`, if it is one.
+fn scalar_list_reference(node: &Node) -> Option<&str> {
+    match node {
+        Node::Scalar(s) => list_reference(s),
+        _ => None,
+    }
 }
 
 /// `${name}` alone: a foreach naming a list parameter.

@@ -169,7 +169,7 @@ mod tests {
     /// A model of degree-3 SH whose frames differ, with the extreme opacities and a zero
     /// scale the encoders clamp.
     fn model(dir: &Path) -> (Gaussians, Vec<FrameState>) {
-        let (mut g, mut frames) = crate::table_tests::sample_model();
+        let (mut g, mut frames) = crate::model::sample_model();
         g.sh_degree = 3;
         g.sh_rest = (0..g.len() * 45).map(|i| (i as f32 * 0.37).sin() * 0.2).collect();
         g.opacity[0] = 1.0;

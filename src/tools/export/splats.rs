@@ -213,7 +213,7 @@ mod tests {
     /// World-frame SH pass through unchanged; `f_dc` inverts `dc = 0.5 + C0·f_dc`.
     #[test]
     fn world_sh_are_kept_and_dc_is_the_3dgs_coefficient() {
-        let (mut g, frames) = crate::table_tests::sample_model();
+        let (mut g, frames) = crate::model::sample_model();
         g.sh_degree = 1;
         g.sh_rest = (0..g.len() * 9).map(|i| i as f32 * 0.01).collect();
         let s = Splats::from_frame(&g, ShFrame::World, &frames[0]);
