@@ -1,7 +1,8 @@
-//! The two benchmark pipelines run end to end at the reduced sizes their headers give:
-//! `pipelines/extreme-view.yaml` (four models, base fit, vanilla continued, USplat4D with
-//! both profiles and the four ablations, benchmark and report) and `pipelines/dycheck.yaml`
-//! (the synthetic DyCheck-layout Fox along the paper-windmill path, masked metrics and PCK-T).
+//! The benchmark pipelines run end to end at reduced sizes: `pipelines/extreme-view.yaml` (four
+//! models, base fit, vanilla continued, USplat4D with both profiles and the four ablations,
+//! benchmark and report), `pipelines/dycheck.yaml` (the synthetic DyCheck-layout Fox along the
+//! paper-windmill path, masked metrics and PCK-T) and `pipelines/fox.yaml` (the oracle's graph
+//! stages, and both recipes and profiles refining a drifting prior).
 
 use crate::util::{Dir, copy_dir, repo};
 
@@ -75,4 +76,28 @@ fn dycheck_pipeline_runs_out_of_the_box_on_the_windmill_fox() {
     assert!(files.iter().any(|f| f.ends_with(".md")), "{files:?}");
     let page = d.join("out/dycheck/fox-windmill/report/report.html");
     assert!(std::fs::read_to_string(page).unwrap().contains("PCK-T"));
+}
+
+#[test]
+fn fox_pipeline_refines_a_drifting_prior_with_both_recipes_and_profiles() {
+    let d = pipeline("fox.yaml");
+    let sets = [
+        "frames=6",
+        "size=48",
+        "gaussians=1000",
+        "init_gaussians=500",
+        "base_steps=6",
+        "opt_steps=3",
+        "max_segments=3",
+    ];
+    let out = run(&d, "fox.yaml", &sets);
+    assert!(out.contains("39 stages: 39 run"), "{out}");
+    let md = std::fs::read_to_string(d.join("out/fox/prior/benchmark/benchmark.md")).unwrap();
+    for m in ["prior", "vanilla-paper", "vanilla-release", "usplat4d-paper", "usplat4d-release"] {
+        assert!(md.contains(&format!("| (120°, 180°] | {m} |")), "{m}:\n{md}");
+    }
+    assert!(md.contains("| ablation-c |"), "{md}");
+    assert!(md.contains("| 3D EPE |"), "{md}");
+    let train = d.join("out/fox/prior/eval-train/base");
+    assert!(std::fs::read_dir(train).unwrap().count() > 0);
 }
