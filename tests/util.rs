@@ -14,6 +14,12 @@ pub fn code_and_stderr<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> (i32, String) {
     (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
 }
 
+/// The words of a command line written as one string (`"edges --model m --out ed"`).
+#[allow(dead_code)]
+pub fn words(line: &str) -> Vec<&str> {
+    line.split_whitespace().collect()
+}
+
 /// The arguments of `render --model MODEL --scene SCENE --split eval --out OUT`.
 pub fn render_eval_args<'a>(model: &'a Path, scene: &'a Path, out: &'a Path) -> [&'a str; 9] {
     let s = |p: &'a Path| p.to_str().expect("UTF-8 path");
