@@ -265,12 +265,47 @@ fn layout_round_trip() {
     assert_eq!((m.width, m.height), (180, 240));
 }
 
-/// One broken copy of the windmill files: what to break and the exact stderr.
+/// One broken copy of the windmill files: the file that is broken and named by the error
+/// (`""`: none), how it is broken, and the exact stderr that follows the warnings of a full
+/// import (`warned`): `error: <dir>/<file>: <error>`.
 struct Case {
     name: &'static str,
     args: &'static [&'static str],
+    file: &'static str,
     breaks: fn(&Path),
-    stderr: fn(&Path) -> String,
+    warned: bool,
+    error: &'static str,
+}
+
+impl Case {
+    /// A `--cameras-only` import of a copy whose `file` is broken by `breaks`.
+    fn cameras(
+        name: &'static str,
+        file: &'static str,
+        breaks: fn(&Path),
+        error: &'static str,
+    ) -> Case {
+        Case { name, args: &["--cameras-only"], file, breaks, warned: false, error }
+    }
+
+    /// A full import of a copy whose `file` is broken by `breaks` (or not at all).
+    fn full(
+        name: &'static str,
+        file: &'static str,
+        breaks: fn(&Path),
+        error: &'static str,
+    ) -> Case {
+        Case { name, args: &[], file, breaks, warned: true, error }
+    }
+
+    /// The exact stderr of the import of copy `d`.
+    fn stderr(&self, d: &Path) -> String {
+        let warnings = if self.warned { no_depth_no_masks(d) } else { String::new() };
+        match self.file {
+            "" => format!("{warnings}error: {}\n", self.error),
+            f => format!("{warnings}error: {}: {}\n", d.join(f).display(), self.error),
+        }
+    }
 }
 
 fn edit(path: &Path, f: impl FnOnce(&mut Value)) {
@@ -279,184 +314,101 @@ fn edit(path: &Path, f: impl FnOnce(&mut Value)) {
     write_json(path, &v);
 }
 
-const CAMERAS_ONLY: &[&str] = &["--cameras-only"];
+fn remove(path: &Path) {
+    std::fs::remove_file(path).unwrap()
+}
 
 fn cases() -> Vec<Case> {
     vec![
-        Case {
-            name: "missing camera file",
-            args: CAMERAS_ONLY,
-            breaks: |d| std::fs::remove_file(d.join("camera/0_00005.json")).unwrap(),
-            stderr: |d| {
-                format!(
-                    "error: {}: file not found (needed by splits/train.json entry 5)\n",
-                    d.join("camera/0_00005.json").display()
-                )
-            },
-        },
-        Case {
-            name: "missing split",
-            args: CAMERAS_ONLY,
-            breaks: |d| std::fs::remove_file(d.join("splits/val.json")).unwrap(),
-            stderr: |d| format!("error: {}: file not found\n", d.join("splits/val.json").display()),
-        },
-        Case {
-            name: "malformed JSON",
-            args: CAMERAS_ONLY,
-            breaks: |d| {
-                std::fs::write(d.join("camera/1_00003.json"), "{\"focal_length\": 719.9,").unwrap()
-            },
-            stderr: |d| {
-                format!(
-                    "error: {}: malformed JSON: EOF while parsing a value at line 1 column 23\n",
-                    d.join("camera/1_00003.json").display()
-                )
-            },
-        },
-        Case {
-            name: "missing key",
-            args: CAMERAS_ONLY,
-            breaks: |d| {
-                edit(&d.join("camera/0_00002.json"), |v| {
+        Case::cameras(
+            "missing camera file",
+            "camera/0_00005.json",
+            remove,
+            "file not found (needed by splits/train.json entry 5)",
+        ),
+        Case::cameras("missing split", "splits/val.json", remove, "file not found"),
+        Case::cameras(
+            "malformed JSON",
+            "camera/1_00003.json",
+            |f| std::fs::write(f, "{\"focal_length\": 719.9,").unwrap(),
+            "malformed JSON: EOF while parsing a value at line 1 column 23",
+        ),
+        Case::cameras(
+            "missing key",
+            "camera/0_00002.json",
+            |f| {
+                edit(f, |v| {
                     v.as_object_mut().unwrap().remove("focal_length");
                 })
             },
-            stderr: |d| {
-                format!(
-                    "error: {}: key 'focal_length': missing\n",
-                    d.join("camera/0_00002.json").display()
-                )
-            },
-        },
-        Case {
-            name: "orientation with two rows",
-            args: CAMERAS_ONLY,
-            breaks: |d| {
-                edit(&d.join("camera/2_00100.json"), |v| {
-                    v["orientation"].as_array_mut().unwrap().truncate(2)
-                })
-            },
-            stderr: |d| {
-                format!(
-                    "error: {}: key 'orientation': expected 3 rows of 3 numbers, got 2 rows\n",
-                    d.join("camera/2_00100.json").display()
-                )
-            },
-        },
-        Case {
-            name: "orientation row of two",
-            args: CAMERAS_ONLY,
-            breaks: |d| {
-                edit(&d.join("camera/0_00000.json"), |v| {
-                    v["orientation"][1].as_array_mut().unwrap().truncate(2)
-                })
-            },
-            stderr: |d| {
-                format!(
-                    "error: {}: key 'orientation[1]': expected 3 numbers, got 2\n",
-                    d.join("camera/0_00000.json").display()
-                )
-            },
-        },
-        Case {
-            name: "orientation not a rotation",
-            args: CAMERAS_ONLY,
-            breaks: |d| {
-                edit(&d.join("camera/0_00000.json"), |v| v["orientation"][0][0] = 2.0.into())
-            },
-            stderr: |d| {
-                format!(
-                    "error: {}: key 'orientation': not a rotation matrix \
-                     (max |O*O^T - I| = 3.000e0, det = 2.0000)\n",
-                    d.join("camera/0_00000.json").display()
-                )
-            },
-        },
-        Case {
-            name: "position not a list",
-            args: CAMERAS_ONLY,
-            breaks: |d| edit(&d.join("camera/0_00001.json"), |v| v["position"] = "abc".into()),
-            stderr: |d| {
-                format!(
-                    "error: {}: key 'position': expected a list of 3 numbers, got \"abc\"\n",
-                    d.join("camera/0_00001.json").display()
-                )
-            },
-        },
-        Case {
-            name: "split lists of different lengths",
-            args: CAMERAS_ONLY,
-            breaks: |d| {
-                edit(&d.join("splits/train.json"), |v| {
-                    v["time_ids"].as_array_mut().unwrap().truncate(276)
-                })
-            },
-            stderr: |d| {
-                format!(
-                    "error: {}: key 'time_ids': has 276 entries but 'frame_names' has 277\n",
-                    d.join("splits/train.json").display()
-                )
-            },
-        },
-        Case {
-            name: "validation time without a training image",
-            args: CAMERAS_ONLY,
-            breaks: |d| edit(&d.join("splits/val.json"), |v| v["time_ids"][0] = 999.into()),
-            stderr: |d| {
-                format!(
-                    "error: {}: key 'time_ids[0]': time id 999 has no training image\n",
-                    d.join("splits/val.json").display()
-                )
-            },
-        },
+            "key 'focal_length': missing",
+        ),
+        Case::cameras(
+            "orientation with two rows",
+            "camera/2_00100.json",
+            |f| edit(f, |v| v["orientation"].as_array_mut().unwrap().truncate(2)),
+            "key 'orientation': expected 3 rows of 3 numbers, got 2 rows",
+        ),
+        Case::cameras(
+            "orientation row of two",
+            "camera/0_00000.json",
+            |f| edit(f, |v| v["orientation"][1].as_array_mut().unwrap().truncate(2)),
+            "key 'orientation[1]': expected 3 numbers, got 2",
+        ),
+        Case::cameras(
+            "orientation not a rotation",
+            "camera/0_00000.json",
+            |f| edit(f, |v| v["orientation"][0][0] = 2.0.into()),
+            "key 'orientation': not a rotation matrix \
+             (max |O*O^T - I| = 3.000e0, det = 2.0000)",
+        ),
+        Case::cameras(
+            "position not a list",
+            "camera/0_00001.json",
+            |f| edit(f, |v| v["position"] = "abc".into()),
+            "key 'position': expected a list of 3 numbers, got \"abc\"",
+        ),
+        Case::cameras(
+            "split lists of different lengths",
+            "splits/train.json",
+            |f| edit(f, |v| v["time_ids"].as_array_mut().unwrap().truncate(276)),
+            "key 'time_ids': has 276 entries but 'frame_names' has 277",
+        ),
+        Case::cameras(
+            "validation time without a training image",
+            "splits/val.json",
+            |f| edit(f, |v| v["time_ids"][0] = 999.into()),
+            "key 'time_ids[0]': time id 999 has no training image",
+        ),
         Case {
             name: "factor zero",
             args: &["--cameras-only", "--factor", "0"],
+            file: "",
             breaks: |_| {},
-            stderr: |_| "error: factor must be at least 1, got 0\n".into(),
+            warned: false,
+            error: "factor must be at least 1, got 0",
         },
-        Case {
-            name: "images missing without --cameras-only",
-            args: &[],
-            breaks: |_| {},
-            stderr: |d| {
-                format!(
-                    "{}error: {}: file not found (needed by '0_00000' of splits/train.json)\n",
-                    no_depth_no_masks(d),
-                    d.join("rgb/2x/0_00000.png").display()
-                )
+        Case::full(
+            "images missing without --cameras-only",
+            "rgb/2x/0_00000.png",
+            |_| {},
+            "file not found (needed by '0_00000' of splits/train.json)",
+        ),
+        Case::full(
+            "corrupt image",
+            "rgb/2x/0_00000.png",
+            |f| {
+                std::fs::create_dir_all(f.parent().unwrap()).unwrap();
+                std::fs::write(f, "garbage").unwrap();
             },
-        },
-        Case {
-            name: "corrupt image",
-            args: &[],
-            breaks: |d| {
-                std::fs::create_dir_all(d.join("rgb/2x")).unwrap();
-                std::fs::write(d.join("rgb/2x/0_00000.png"), "garbage").unwrap();
-            },
-            stderr: |d| {
-                format!(
-                    "{}error: {}: Format error decoding Png: Invalid PNG signature.\n",
-                    no_depth_no_masks(d),
-                    d.join("rgb/2x/0_00000.png").display()
-                )
-            },
-        },
-        Case {
-            name: "image of the wrong size",
-            args: &[],
-            breaks: |d| {
-                formats::png::write_png(&d.join("rgb/2x/0_00000.png"), &pattern(4, 3, 0, 4))
-                    .unwrap();
-            },
-            stderr: |d| {
-                format!(
-                    "{}error: {}: image is 4x3 but its camera at factor 2 is 360x480 (W x H)\n",
-                    no_depth_no_masks(d),
-                    d.join("rgb/2x/0_00000.png").display()
-                )
-            },
-        },
+            "Format error decoding Png: Invalid PNG signature.",
+        ),
+        Case::full(
+            "image of the wrong size",
+            "rgb/2x/0_00000.png",
+            |f| formats::png::write_png(f, &pattern(4, 3, 0, 4)).unwrap(),
+            "image is 4x3 but its camera at factor 2 is 360x480 (W x H)",
+        ),
     ]
 }
 
@@ -478,9 +430,9 @@ fn bad_inputs_give_exact_errors() {
     for (i, case) in cases().into_iter().enumerate() {
         let dir = tmp.path().join(format!("seq{i}"));
         copy_dir(&data, &dir);
-        (case.breaks)(&dir);
+        (case.breaks)(&dir.join(case.file));
         let (code, err) = import(&dir, &tmp.path().join(format!("out{i}")), case.args);
-        let want = (case.stderr)(&dir);
+        let want = case.stderr(&dir);
         if code != 2 || err != want {
             failures.push(format!("{}: exit {code}\n got: {err}\nwant: {want}", case.name));
         }

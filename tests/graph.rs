@@ -14,6 +14,8 @@ use usplat4d::tables::Provenance;
 use usplat4d::tables::uncertainty::{UncertaintyFrame, UncertaintyWriter};
 use usplat4d::util::rng::Rng;
 
+use crate::util::words;
+
 const N: usize = 1200;
 const T: usize = 24;
 
@@ -89,6 +91,11 @@ fn write_inputs(dir: &Path, tr: &Tracks) {
     w.finish().unwrap();
 }
 
+/// `keynodes` on the inputs of [`write_inputs`].
+const KEYNODES: &str = "keynodes --model model --uncertainty unc --out kn";
+/// `edges` on the inputs of [`write_inputs`] and the output of [`KEYNODES`].
+const EDGES: &str = "edges --model model --uncertainty unc --keynodes kn --out ed";
+
 fn usplat4d(dir: &Path, args: &[&str]) -> String {
     let out = crate::util::bin().current_dir(dir).args(args).output().unwrap();
     let text =
@@ -100,33 +107,13 @@ fn usplat4d(dir: &Path, args: &[&str]) -> String {
 /// Run the three stages with `profile` and extra edge arguments; returns the ARI of the
 /// segments and the edges file bytes.
 fn pipeline(dir: &Path, profile: &str, edge_args: &[&str], threads: &str) -> (f64, Vec<u8>) {
-    let mut kn = vec![
-        "--threads",
-        threads,
-        "keynodes",
-        "--model",
-        "model",
-        "--uncertainty",
-        "unc",
-        "--out",
-        "kn",
-    ];
+    let mut kn = vec!["--threads", threads];
+    kn.extend(words(KEYNODES));
     kn.extend(["--profile", profile]);
     kn.extend(["--voxel-size", "0.15", "--candidates-per-frame", "30%"]);
     usplat4d(dir, &kn);
-    let mut ed = vec![
-        "--threads",
-        threads,
-        "edges",
-        "--model",
-        "model",
-        "--uncertainty",
-        "unc",
-        "--keynodes",
-        "kn",
-        "--out",
-        "ed",
-    ];
+    let mut ed = vec!["--threads", threads];
+    ed.extend(words(EDGES));
     ed.extend(["--profile", profile, "--r-xyz", "1,1,1"]);
     ed.extend(edge_args);
     usplat4d(dir, &ed);
@@ -165,22 +152,8 @@ fn edges_name_the_missing_scene() {
     let dir = tempfile::tempdir().unwrap();
     let (tr, _) = two_objects(1);
     write_inputs(dir.path(), &tr);
-    usplat4d(dir.path(), &["keynodes", "--model", "model", "--uncertainty", "unc", "--out", "kn"]);
-    let out = crate::util::bin()
-        .current_dir(dir.path())
-        .args([
-            "edges",
-            "--model",
-            "model",
-            "--uncertainty",
-            "unc",
-            "--keynodes",
-            "kn",
-            "--out",
-            "ed",
-        ])
-        .output()
-        .unwrap();
+    usplat4d(dir.path(), &words(KEYNODES));
+    let out = crate::util::bin().current_dir(dir.path()).args(words(EDGES)).output().unwrap();
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("pass --scene"), "{err}");

@@ -31,13 +31,12 @@
 use std::collections::HashSet;
 use std::path::Path;
 
-use usplat4d::model::{FrameState, Model};
-use usplat4d::tables::Provenance;
+use usplat4d::model::Model;
 use usplat4d::tables::key_nodes::{self, KeyNodes, Role};
 use usplat4d::tables::uncertainty::{UncertaintyFrame, UncertaintyReader};
 use usplat4d::util::rng::Rng;
 
-use crate::util::{Dir, repo};
+use crate::util::{Dir, Drift, bbox_diagonal, drifted_prior, repo};
 
 /// Drift offset as a fraction of the bounding-box diagonal.
 const DRIFT: f32 = 0.15;
@@ -68,28 +67,11 @@ fn fox_scene(dir: &Dir) {
     ]);
 }
 
-/// All frames of a model's trajectories, `[T]` of `[N]` positions and rotations.
-fn frames(model: &Model) -> Vec<FrameState> {
-    (0..model.num_frames()).map(|t| model.frame(t).unwrap()).collect()
-}
-
 /// All frames of an uncertainty table, and its Gaussian order `[N]`.
 fn uncertainty(path: &Path) -> (Vec<u32>, Vec<UncertaintyFrame>) {
     let r = UncertaintyReader::open(path).unwrap();
     let frames = (0..r.num_frames()).map(|t| r.frame(t).unwrap()).collect();
     (r.ids().to_vec(), frames)
-}
-
-/// Length of the diagonal of the bounding box of `p` `[N, 3]`.
-fn bbox_diagonal(p: &[[f32; 3]]) -> f32 {
-    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
-    for q in p {
-        for k in 0..3 {
-            lo[k] = lo[k].min(q[k]);
-            hi[k] = hi[k].max(q[k]);
-        }
-    }
-    (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f32>().sqrt()
 }
 
 /// Fraction of the voxels (edge `voxel`) occupied by `p` `[N, 3]` that have a voxel holding
@@ -229,48 +211,9 @@ fn flip_rate(
 
 /// The drifted prior of the oracle in `dir/drifted`: a seeded half of the dynamic Gaussians
 /// displaced in a window around the frames the oracle run `u0` does not see them in.
-/// Returns the window `[N][T]`, whether each Gaussian drifted `[N]` and the offset.
-fn drifted_model(dir: &Dir, oracle: &Model, u0: &[UncertaintyFrame]) -> DriftWindow {
-    let mut states = frames(oracle);
-    let (n, nt) = (oracle.gaussians.len(), states.len());
-    let offset = DRIFT * bbox_diagonal(&states[0].position);
-
-    // Drift a seeded half of the dynamic Gaussians in a window around their unseen frames.
-    let mut rng = Rng::new(5);
-    let mut window = vec![vec![false; nt]; n];
-    let mut drifted = vec![false; n];
-    for i in (0..n).filter(|&i| oracle.gaussians.dynamic[i]) {
-        let (pick, dir3) = (rng.uniform() < 0.5, [rng.normal(), rng.normal(), rng.normal()]);
-        let unseen: Vec<usize> = (0..nt).filter(|&t| u0[t].n_pixels[i] == 0).collect();
-        if !pick || unseen.is_empty() {
-            continue;
-        }
-        drifted[i] = true;
-        let len = dir3.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
-        let d = dir3.map(|v| (v / len) as f32 * offset);
-        for &t in &unseen {
-            for w in t.saturating_sub(MARGIN)..(t + MARGIN + 1).min(nt) {
-                window[i][w] = true;
-            }
-        }
-        for (s, _) in states.iter_mut().zip(&window[i]).filter(|(_, w)| **w) {
-            for k in 0..3 {
-                s.position[i][k] += d[k];
-            }
-        }
-    }
-    Model::save(
-        &dir.join("drifted"),
-        &oracle.gaussians,
-        states.into_iter().map(Ok),
-        &Provenance::default(),
-    )
-    .unwrap();
-    (window, drifted, offset)
+fn drifted_model(dir: &Dir, oracle: &Model, u0: &[UncertaintyFrame]) -> Drift {
+    drifted_prior(dir, oracle, |i, t| u0[t].n_pixels[i] == 0, DRIFT, MARGIN)
 }
-
-/// What [`drifted_model`] returns: window `[N][T]`, drifted `[N]`, offset.
-type DriftWindow = (Vec<Vec<bool>>, Vec<bool>, f32);
 
 /// (Gaussian row, frame) pairs.
 type Pairs = Vec<(usize, usize)>;
@@ -294,7 +237,7 @@ fn drifting_prior_raises_uncertainty() {
     let oracle = Model::load(&dir.join("S/oracle")).unwrap();
     let (ids, u0) = uncertainty(&dir.join("U0/uncertainty.parquet"));
     assert_eq!(ids, oracle.gaussians.id, "the paper scope lists every Gaussian in model order");
-    let (window, drifted, offset) = drifted_model(&dir, &oracle, &u0);
+    let Drift { window, drifted, offset } = drifted_model(&dir, &oracle, &u0);
     let n = ids.len();
     dir.ok(&["uncertainty", "--model", "drifted", "--scene", "S", "--out", "U1"]);
     let (_, u1) = uncertainty(&dir.join("U1/uncertainty.parquet"));
@@ -357,7 +300,7 @@ fn covered_pixel_floor_is_measured() {
     };
     let u0 = run("S/oracle", "U0", Some("0"));
     let oracle = Model::load(&dir.join("S/oracle")).unwrap();
-    let (window, drifted, _) = drifted_model(&dir, &oracle, &u0);
+    let Drift { window, drifted, .. } = drifted_model(&dir, &oracle, &u0);
     let (drift_seen, clean_seen) = seen_pairs(&u0, &window, &drifted);
     let n = oracle.gaussians.len();
     let p0 = oracle.frame(0).unwrap().position;

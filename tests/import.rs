@@ -21,7 +21,7 @@ use usplat4d::import::som::Som;
 use usplat4d::math::dqb;
 use usplat4d::math::quat64 as q4;
 
-use crate::util::{Dir, shared_data};
+use crate::util::{Dir, shared_data, words};
 
 fn fixtures(sub: &str) -> Option<PathBuf> {
     let d = shared_data(&format!("fixtures/{sub}"));
@@ -625,19 +625,7 @@ fn imported_mosca_runs_through_the_graph_stages() {
         "--min-significant-period",
         "1",
     ]);
-    dir.ok(&[
-        "edges",
-        "--model",
-        "m",
-        "--scene",
-        "s",
-        "--uncertainty",
-        "unc",
-        "--keynodes",
-        "kn",
-        "--out",
-        "ed",
-    ]);
+    dir.ok(&words("edges --model m --scene s --uncertainty unc --keynodes kn --out ed"));
     let edges = usplat4d::tables::edges::read(&dir.join("ed/edges.parquet")).unwrap();
     assert!(!edges.is_empty());
     // the static background stays out of the graph (issue 15 item 1)

@@ -13,7 +13,7 @@ use usplat4d::model::Model;
 use usplat4d::tables::Provenance;
 use usplat4d::tables::training_log::{self, LogRow};
 
-use crate::util::{Dir, repo};
+use crate::util::{Dir, drifted_prior, repo};
 
 /// The scene in `dir/S` (oracle model in `dir/S/oracle`).
 fn tiny_fox(dir: &Dir) {
@@ -277,7 +277,6 @@ fn far_view_psnr(dir: &Dir, model: &str) -> f64 {
 #[ignore = "issue 11's recovery criterion does not hold on this prior (vanilla 0.088 vs \
             usplat4d paper 0.096; the DQB targets are 0.134 off); see the doc comment"]
 fn usplat4d_brings_drifted_points_closer_than_vanilla() {
-    use usplat4d::util::rng::Rng;
     let dir = Dir::new();
     let gltf = repo().join("pipelines/data/Fox.glb");
     let args = ["synth", "--gltf", gltf.to_str().unwrap(), "--animation", "Walk", "--out", "S"];
@@ -291,39 +290,8 @@ fn usplat4d_brings_drifted_points_closer_than_vanilla() {
     let nt = oracle.num_frames();
     let seen: Vec<Vec<u32>> = (0..nt).map(|t| u0.frame(t).unwrap().n_pixels).collect();
     let truth: Vec<Vec<[f32; 3]>> = (0..nt).map(|t| oracle.frame(t).unwrap().position).collect();
-    let n = oracle.gaussians.len();
-    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
-    for p in &truth[0] {
-        for k in 0..3 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-        }
-    }
-    let offset = 0.1 * (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f32>().sqrt();
-    let mut states: Vec<_> = (0..nt).map(|t| oracle.frame(t).unwrap()).collect();
-    let mut rng = Rng::new(5);
-    let mut pairs = Vec::new();
-    for i in (0..n).filter(|&i| oracle.gaussians.dynamic[i]) {
-        let (pick, d) = (rng.uniform() < 0.5, [rng.normal(), rng.normal(), rng.normal()]);
-        let unseen: Vec<usize> = (0..nt).filter(|&t| seen[t][i] == 0).collect();
-        if !pick || unseen.is_empty() {
-            continue;
-        }
-        let len = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
-        for &t in &unseen {
-            for k in 0..3 {
-                states[t].position[i][k] += (d[k] / len) as f32 * offset;
-            }
-            pairs.push((i, t));
-        }
-    }
-    Model::save(
-        &dir.join("drifted"),
-        &oracle.gaussians,
-        states.into_iter().map(Ok),
-        &Provenance::default(),
-    )
-    .unwrap();
+    let drift = drifted_prior(&dir, &oracle, |i, t| seen[t][i] == 0, 0.1, 0);
+    let (offset, pairs) = (drift.offset, drift.pairs());
     let common = ["--model", "drifted", "--scene", "S", "--steps", "30", "--lr-position", "0.01"];
     dir.ok(&[&["optimize", "--recipe", "vanilla", "--out", "V"][..], &common[..]].concat());
     let ids = &oracle.gaussians.id;

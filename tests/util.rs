@@ -14,6 +14,12 @@ pub fn code_and_stderr<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> (i32, String) {
     (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).into_owned())
 }
 
+/// The words of a command line written as one string (`"edges --model m --out ed"`).
+#[allow(dead_code)]
+pub fn words(line: &str) -> Vec<&str> {
+    line.split_whitespace().collect()
+}
+
 /// The arguments of `render --model MODEL --scene SCENE --split eval --out OUT`.
 pub fn render_eval_args<'a>(model: &'a Path, scene: &'a Path, out: &'a Path) -> [&'a str; 9] {
     let s = |p: &'a Path| p.to_str().expect("UTF-8 path");
@@ -139,4 +145,86 @@ pub fn demo_with_training_renders(dir: &Dir) {
         "--split",
         "train",
     ]);
+}
+
+/// Length of the diagonal of the bounding box of `p` `[N, 3]`.
+#[allow(dead_code)]
+pub fn bbox_diagonal(p: &[[f32; 3]]) -> f32 {
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for q in p {
+        for k in 0..3 {
+            lo[k] = lo[k].min(q[k]);
+            hi[k] = hi[k].max(q[k]);
+        }
+    }
+    (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f32>().sqrt()
+}
+
+/// Where [`drifted_prior`] displaced the oracle.
+#[allow(dead_code)]
+pub struct Drift {
+    /// Whether Gaussian i is displaced at frame t, `[N][T]`.
+    pub window: Vec<Vec<bool>>,
+    /// Whether each Gaussian drifted `[N]`.
+    pub drifted: Vec<bool>,
+    /// Length of the displacement, world units.
+    pub offset: f32,
+}
+
+#[allow(dead_code)]
+impl Drift {
+    /// The displaced (Gaussian row, frame) pairs, by row then frame.
+    pub fn pairs(&self) -> Vec<(usize, usize)> {
+        let rows = self.window.iter().enumerate();
+        rows.flat_map(|(i, w)| w.iter().enumerate().filter(|(_, d)| **d).map(move |(t, _)| (i, t)))
+            .collect()
+    }
+}
+
+/// The drifted prior of `oracle` in `dir/drifted`: a seeded half of the dynamic Gaussians
+/// (seed 5), each displaced along one random direction by `fraction` of the bounding-box
+/// diagonal of frame 0, at the frames where `unseen(i, t)` (the oracle run does not see
+/// Gaussian i at frame t) and `margin` frames either side.
+#[allow(dead_code)]
+pub fn drifted_prior(
+    dir: &Dir,
+    oracle: &usplat4d::model::Model,
+    unseen: impl Fn(usize, usize) -> bool,
+    fraction: f32,
+    margin: usize,
+) -> Drift {
+    let mut states: Vec<_> = (0..oracle.num_frames()).map(|t| oracle.frame(t).unwrap()).collect();
+    let (n, nt) = (oracle.gaussians.len(), states.len());
+    let offset = fraction * bbox_diagonal(&states[0].position);
+    let mut rng = usplat4d::util::rng::Rng::new(5);
+    let mut window = vec![vec![false; nt]; n];
+    let mut drifted = vec![false; n];
+    for i in (0..n).filter(|&i| oracle.gaussians.dynamic[i]) {
+        let (pick, dir3) = (rng.uniform() < 0.5, [rng.normal(), rng.normal(), rng.normal()]);
+        let unseen: Vec<usize> = (0..nt).filter(|&t| unseen(i, t)).collect();
+        if !pick || unseen.is_empty() {
+            continue;
+        }
+        drifted[i] = true;
+        let len = dir3.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
+        let d = dir3.map(|v| (v / len) as f32 * offset);
+        for &t in &unseen {
+            for w in t.saturating_sub(margin)..(t + margin + 1).min(nt) {
+                window[i][w] = true;
+            }
+        }
+        for (s, _) in states.iter_mut().zip(&window[i]).filter(|(_, w)| **w) {
+            for k in 0..3 {
+                s.position[i][k] += d[k];
+            }
+        }
+    }
+    usplat4d::model::Model::save(
+        &dir.join("drifted"),
+        &oracle.gaussians,
+        states.into_iter().map(Ok),
+        &usplat4d::tables::Provenance::default(),
+    )
+    .unwrap();
+    Drift { window, drifted, offset }
 }

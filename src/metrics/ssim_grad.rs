@@ -254,21 +254,7 @@ fn blur_column(rows: &[f64], len: usize, h: usize, yy: usize, f: &[f64; WINDOW],
 mod tests {
     use super::*;
     use crate::formats::png::Image;
-
-    /// Deterministic values in [0, 1) quantised to 1/4096 (splitmix64), so that a finite
-    /// difference step of 1/1024 is exact in f32.
-    fn noise(n: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = s;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                ((z ^ (z >> 31)) >> 52) as f32 / 4096.0
-            })
-            .collect()
-    }
+    use crate::util::rng::grid_noise as noise;
 
     /// Direct 2-D windowed SSIM with zero padding (`Same`) or valid windows, independent of
     /// the separable code.

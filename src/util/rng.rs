@@ -86,6 +86,14 @@ impl Rng {
     }
 }
 
+/// `n` values of the stream from state `seed` in [0, 1) on the 1/4096 grid, so that
+/// finite-difference steps of 1/1024 are exact in f32 (the gradient tests' images).
+#[cfg(test)]
+pub(crate) fn grid_noise(n: usize, seed: u64) -> Vec<f32> {
+    let mut r = Rng::from_state(seed);
+    (0..n).map(|_| (r.next_u64() >> 52) as f32 / 4096.0).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -38,13 +38,9 @@ use crate::formats::{self, png::Image};
 use crate::scene::{Camera, Scene, Split};
 use crate::tables::Provenance;
 
-fn default_factor() -> u32 {
-    2
-}
-
 /// Parameters of `usplat4d import dycheck`.
-#[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+#[derive(Debug, Clone, clap::Args, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
 pub struct ImportDycheckParams {
     /// DyCheck sequence directory (camera/, splits/, rgb/, depth/, covisible/, ...).
     #[arg(long, value_name = "SEQ_DIR")]
@@ -54,17 +50,14 @@ pub struct ImportDycheckParams {
     pub out: PathBuf,
     /// Downscale factor F: reads rgb/Fx and depth/Fx, divides the intrinsics by F (DyCheck's
     /// benchmark resolution is F = 2: 360x480).
-    #[arg(long, default_value_t = default_factor())]
-    #[serde(default = "default_factor")]
+    #[arg(long, default_value_t = 2)]
     pub factor: u32,
     /// World frame of cameras and depth: `source` (as stored, metres) or `dycheck`
     /// (DyCheck's parser normalisation from scene.json).
     #[arg(long, value_enum, default_value_t = World::Source)]
-    #[serde(default)]
     pub world: World,
     /// Write only cameras.parquet and scene.json (no images, depth or masks are read).
     #[arg(long)]
-    #[serde(default)]
     pub cameras_only: bool,
 }
 
@@ -302,20 +295,15 @@ mod tests {
     use super::*;
 
     #[test]
-    fn params_defaults_and_unknown_keys() {
-        let p: ImportDycheckParams =
-            serde_json::from_str(r#"{"data": "seq", "out": "scene"}"#).unwrap();
+    fn params_defaults_and_unknown_options() {
+        let parse = crate::stages::params::parse_args::<ImportDycheckParams>;
+        let p = parse(&["--data", "seq", "--out", "scene"]).unwrap();
         assert_eq!((p.factor, p.world, p.cameras_only), (2, World::Source, false));
-        let p: ImportDycheckParams = serde_json::from_str(
-            r#"{"data": "s", "out": "o", "world": "dycheck", "cameras-only": true}"#,
-        )
-        .unwrap();
+        let p = parse(&["--data", "s", "--out", "o", "--world", "dycheck", "--cameras-only"]);
+        let p = p.unwrap();
         assert_eq!((p.world, p.cameras_only), (World::Dycheck, true));
-        let err =
-            serde_json::from_str::<ImportDycheckParams>(r#"{"data": "s", "out": "o", "factr": 2}"#)
-                .unwrap_err()
-                .to_string();
-        assert!(err.starts_with("unknown field `factr`"), "{err}");
+        let err = parse(&["--data", "s", "--out", "o", "--factr", "2"]).unwrap_err().to_string();
+        assert!(err.contains("unexpected argument '--factr'"), "{err}");
     }
 
     #[test]

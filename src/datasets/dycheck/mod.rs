@@ -46,17 +46,7 @@ pub use layout::{over_white, write_layout};
 pub use sequence::{Entry, Sequence, read_camera_path};
 
 /// Which world frame imported cameras and depth use.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    Default,
-    PartialEq,
-    Eq,
-    clap::ValueEnum,
-    serde::Serialize,
-    serde::Deserialize,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum World {
     /// Positions and depth as the camera files and depth maps store them (metres).

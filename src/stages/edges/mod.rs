@@ -55,7 +55,7 @@ use glam::{DMat3, Mat3};
 use rayon::prelude::*;
 
 use super::graph::metric::{MetricForm, apply};
-use super::graph::search::{self, KeyFrames};
+use super::graph::search::{self, FrameQuery, KeyFrames};
 use super::graph::tracks::{GraphScope, ScopedTracks, Tracks};
 use super::params::check;
 use crate::context::Context;
@@ -359,7 +359,8 @@ pub fn build_with_report(
                     let t = keys.t_hat[key_rows[a]] as usize;
                     let q = kf.q[a * nt + t];
                     let u = kf.u[a * nt + t];
-                    search::knn_at_frame(&kf, &trees[t], q, u, t, Some(a as u32), k, form)
+                    let query = FrameQuery { q, u, t, exclude: Some(a as u32), k, form };
+                    search::knn_at_frame(&kf, &trees[t], &query)
                 })
                 .collect()
         }
@@ -392,11 +393,14 @@ pub fn build_with_report(
                 (KeyKnnFill::Nearest, KeyEdgeMode::UaKnn) => {
                     let (q, u) = (all_metric.q[a * nt + t], all_metric.u[a * nt + t]);
                     let form = Some(s.metric_form);
-                    search::knn_at_frame_brute(&all_metric, q, u, t, Some(a as u32), want, form)
+                    let query = FrameQuery { q, u, t, exclude: Some(a as u32), k: want, form };
+                    search::knn_at_frame_brute(&all_metric, &query)
                 }
                 (KeyKnnFill::Nearest, KeyEdgeMode::Euclidean | KeyEdgeMode::MaxContrib) => {
                     let q = positions.q[a * nt + t];
-                    search::knn_at_frame_brute(&positions, q, 0.0, t, Some(a as u32), want, None)
+                    let query =
+                        FrameQuery { q, u: 0.0, t, exclude: Some(a as u32), k: want, form: None };
+                    search::knn_at_frame_brute(&positions, &query)
                 }
                 (KeyKnnFill::Nearest, _) => search::knn_mean(&positions, a, want),
             };

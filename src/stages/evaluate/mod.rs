@@ -37,17 +37,7 @@ use crate::util::fs::dir_label;
 use tracks::{PckTSummary, TrackingSummary};
 
 /// Whether LPIPS is computed.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    clap::ValueEnum,
-    serde::Deserialize,
-    serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum LpipsMode {
     /// Compute LPIPS when the weights are installed; otherwise warn and leave it null.
@@ -60,17 +50,7 @@ pub enum LpipsMode {
 }
 
 /// Which eval cameras use their masks.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    clap::ValueEnum,
-    serde::Deserialize,
-    serde::Serialize,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskMode {
     /// Masked metrics for cameras that have a mask and no angle offset (DyCheck-like
@@ -84,67 +64,47 @@ pub enum MaskMode {
 }
 
 /// Parameters of `usplat4d evaluate`.
-#[derive(Debug, Clone, Default, clap::Args, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+#[derive(Debug, Clone, Default, clap::Args, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
 pub struct EvaluateParams {
     /// Directory of rendered images, laid out like the scene (`DIR/<camera image_path>`).
     #[arg(long, value_name = "DIR", required_unless_present = "compare")]
-    #[serde(default)]
     pub renders: Option<PathBuf>,
     /// The scene directory with the ground-truth eval images.
     #[arg(long, value_name = "SCENE_DIR", required_unless_present = "compare")]
-    #[serde(default)]
     pub scene: Option<PathBuf>,
     /// Method label stored in the table (default: the name of the renders directory).
     #[arg(long, value_name = "LABEL")]
-    #[serde(default)]
     pub method: Option<String>,
     /// Output directory for metrics.parquet, summary.json and summary.md.
     #[arg(long, value_name = "DIR", required_unless_present = "compare")]
-    #[serde(default)]
     pub out: Option<PathBuf>,
     /// Exit with status 1 when the mean PSNR over all images is below this value (dB).
     #[arg(long, value_name = "PSNR", value_parser = crate::stages::params::check::finite)]
-    #[serde(default)]
     pub fail_below: Option<f64>,
     /// LPIPS: auto (when installed), off, or require.
     #[arg(long, value_enum, default_value_t = LpipsMode::Auto)]
-    #[serde(default)]
     pub lpips: LpipsMode,
     /// Masked (DyCheck) metrics: auto, always or never.
     #[arg(long, value_enum, default_value_t = MaskMode::Auto)]
-    #[serde(default)]
     pub masks: MaskMode,
     /// Model directory whose tracks are scored against the scene's ground-truth tracks
     /// (3D EPE and PCK) and DyCheck keypoints (PCK-T); skipped with a warning when the
     /// scene has neither.
     #[arg(long, value_name = "MODEL_DIR")]
-    #[serde(default)]
     pub model: Option<PathBuf>,
     /// Instead of evaluating, print evaluations side by side with their differences to the
     /// first, tracking included (output directories of `evaluate` or their metrics files).
     #[arg(long, num_args = 2.., value_names = ["A", "B"], conflicts_with_all = ["renders", "scene", "out", "fail_below", "model"])]
-    #[serde(default)]
     pub compare: Option<Vec<PathBuf>>,
     /// Score the eval views (default) or the training views (how well a model fits its
     /// input video; no per-view-range rows).
     #[arg(long, value_enum, default_value_t = EvalSplit::Eval)]
-    #[serde(default)]
     pub split: EvalSplit,
 }
 
 /// The views `evaluate` scores.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    Default,
-    PartialEq,
-    Eq,
-    clap::ValueEnum,
-    serde::Serialize,
-    serde::Deserialize,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum EvalSplit {
     /// The held-out evaluation views.

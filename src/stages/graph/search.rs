@@ -156,16 +156,28 @@ impl FrameTree {
     }
 }
 
+/// A query of [`knn_at_frame`]: the `k` eligible keys of lowest cost at frame `t` for a
+/// point `q` with uncertainty `u` (Eq. 7 in the metric `form` when `Some`; plain Euclidean
+/// kNN when `None`), `exclude` left out.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameQuery {
+    /// The query point at frame `t`.
+    pub q: [f32; 3],
+    /// Its uncertainty at frame `t`.
+    pub u: f32,
+    /// The frame.
+    pub t: usize,
+    /// A key left out (the query key itself).
+    pub exclude: Option<u32>,
+    /// Neighbours wanted.
+    pub k: usize,
+    /// The metric of Eq. 7, or `None` for Euclidean.
+    pub form: Option<MetricForm>,
+}
+
 /// Brute-force reference of [`knn_at_frame`].
-pub fn knn_at_frame_brute(
-    kf: &KeyFrames,
-    q: [f32; 3],
-    u: f32,
-    t: usize,
-    exclude: Option<u32>,
-    k: usize,
-    form: Option<MetricForm>,
-) -> Vec<(f32, u32)> {
+pub fn knn_at_frame_brute(kf: &KeyFrames, query: &FrameQuery) -> Vec<(f32, u32)> {
+    let FrameQuery { q, u, t, exclude, k, form } = *query;
     let mut best = Vec::with_capacity(k + 1);
     for l in 0..kf.num_keys {
         if Some(l as u32) == exclude || !kf.eligible[kf.at(l, t)] {
@@ -176,20 +188,10 @@ pub fn knn_at_frame_brute(
     best
 }
 
-/// The k eligible keys of lowest cost at frame `t` for a query at `q` with uncertainty
-/// `u` (Eq. 7 in the metric `form` when `Some`; plain Euclidean kNN when `None`),
-/// `exclude` left out.
+/// The answer to `query` ([`FrameQuery`]) from the eligible keys' tree of its frame.
 /// Equals [`knn_at_frame_brute`] (see the module doc for the argument).
-pub fn knn_at_frame(
-    kf: &KeyFrames,
-    tree: &FrameTree,
-    q: [f32; 3],
-    u: f32,
-    t: usize,
-    exclude: Option<u32>,
-    k: usize,
-    form: Option<MetricForm>,
-) -> Vec<(f32, u32)> {
+pub fn knn_at_frame(kf: &KeyFrames, tree: &FrameTree, query: &FrameQuery) -> Vec<(f32, u32)> {
+    let FrameQuery { q, u, t, exclude, k, form } = *query;
     let total = tree.members.len();
     if k == 0 {
         return Vec::new();
@@ -791,8 +793,9 @@ mod tests {
                 let (q, u) = query(seed * 100 + qs, kf.num_frames, &mats);
                 let t = (qs as usize) % kf.num_frames;
                 for (k, f) in [(1, Some(form)), (8, Some(form)), (20, None)] {
-                    let fast = knn_at_frame(&kf, &trees[t], q[t], u[t], t, Some(3), k, f);
-                    let slow = knn_at_frame_brute(&kf, q[t], u[t], t, Some(3), k, f);
+                    let query = FrameQuery { q: q[t], u: u[t], t, exclude: Some(3), k, form: f };
+                    let fast = knn_at_frame(&kf, &trees[t], &query);
+                    let slow = knn_at_frame_brute(&kf, &query);
                     assert_eq!(fast, slow, "{form:?} seed {seed} query {qs} k {k}");
                 }
                 let cand = trees[t].nearest(q[t], 2).0;
@@ -860,9 +863,11 @@ mod tests {
         };
         let trees = frame_trees(&kf);
         let inv = Some(MetricForm::Inverse);
-        let got = knn_at_frame(&kf, &trees[0], [0.0; 3], 1.0, 0, None, 2, inv);
+        let query = FrameQuery { q: [0.0; 3], u: 1.0, t: 0, exclude: None, k: 2, form: inv };
+        let got = knn_at_frame(&kf, &trees[0], &query);
         assert_eq!(got, vec![(0.5, 0), (0.5, 1)]);
-        let got = knn_at_frame(&kf, &trees[0], [0.0; 3], 1.0, 0, None, 2, Some(MetricForm::Weight));
+        let got =
+            knn_at_frame(&kf, &trees[0], &FrameQuery { form: Some(MetricForm::Weight), ..query });
         assert_eq!(got, vec![(2.0, 0), (2.0, 1)]);
         assert_eq!(
             argmin_sum(&kf, &key_tree(&kf, 1, MetricForm::Inverse), &[[0.0; 3]], &[1.0], &[2]),

@@ -2,6 +2,7 @@
 //! needs no fonts and scales without blur): grouped bars of a metric per view range and
 //! method, and training curves of every loss term on a log scale.
 
+use plotters::coord::Shift;
 use plotters::prelude::*;
 
 /// A qualitative palette (Tableau 10), one colour per method or curve.
@@ -20,6 +21,22 @@ pub const PALETTE: [RGBColor; 10] = [
 
 fn plot_err<E: std::error::Error + Send + Sync>(e: DrawingAreaErrorKind<E>) -> anyhow::Error {
     anyhow::anyhow!("drawing a chart: {e}")
+}
+
+/// Draw the legend of `chart`'s series at `position` (on a light box) and finish `root`.
+fn legend_and_present<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    root: &DrawingArea<DB, Shift>,
+    chart: &mut ChartContext<'a, DB, CT>,
+    position: SeriesLabelPosition,
+) -> anyhow::Result<()> {
+    chart
+        .configure_series_labels()
+        .position(position)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_err)?;
+    root.present().map_err(plot_err)
 }
 
 /// Grouped bars: `values[g][m]` is method `m`'s value in group `g` (`None`: no bar).
@@ -76,14 +93,7 @@ pub fn grouped_bars(
                 move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], color.filled()),
             );
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()
-            .map_err(plot_err)?;
-        root.present().map_err(plot_err)?;
+        legend_and_present(&root, &mut chart, SeriesLabelPosition::LowerRight)?;
     }
     Ok(svg)
 }
@@ -127,14 +137,7 @@ pub fn log_curves(title: &str, curves: &[Curve]) -> anyhow::Result<String> {
                     PathElement::new([(x, y), (x + 14, y)], color.stroke_width(2))
                 });
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()
-            .map_err(plot_err)?;
-        root.present().map_err(plot_err)?;
+        legend_and_present(&root, &mut chart, SeriesLabelPosition::UpperRight)?;
     }
     Ok(svg)
 }

@@ -1,20 +1,7 @@
 //! Test helpers of the image losses: deterministic images and a finite-difference checker
 //! that collects every failure and asserts once (tolerance `abs + rel·|fd|`).
 
-/// `n` deterministic values in [0, 1) on the 1/4096 grid (splitmix64), so that steps of
-/// 1/1024 are exact in f32.
-pub fn noise(n: usize, seed: u64) -> Vec<f32> {
-    let mut s = seed;
-    (0..n)
-        .map(|_| {
-            s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = s;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            ((z ^ (z >> 31)) >> 52) as f32 / 4096.0
-        })
-        .collect()
-}
+pub(crate) use crate::util::rng::grid_noise as noise;
 
 /// Collects finite-difference comparisons of one test.
 pub struct Check {
