@@ -111,28 +111,72 @@ fn gpu_uncertainty_matches_the_cpu_uncertainty() {
     let Some(()) = run("gpu", &b.iter().map(|s| s.as_os_str()).collect::<Vec<_>>()) else {
         return;
     };
+    let (worst, conv) = compare_uncertainty(&cpu, &gpu);
+    eprintln!("gpu uncertainty: max relative difference {worst:e}, {conv} converged pairs");
+}
+
+/// Compare two `uncertainty` outputs: the same Gaussians and frames, pixel counts and
+/// convergence flags exact, sums and u within 1e-4 relative. Returns (largest relative
+/// difference, converged pairs).
+fn compare_uncertainty(cpu: &Path, gpu: &Path) -> (f32, usize) {
     let a = UncertaintyReader::open(&cpu.join("uncertainty.parquet")).unwrap();
     let b = UncertaintyReader::open(&gpu.join("uncertainty.parquet")).unwrap();
     assert_eq!(a.ids(), b.ids());
     assert_eq!(a.num_frames(), b.num_frames());
     let rel = |x: f32, y: f32| (x - y).abs() / x.abs().max(y.abs()).max(1e-30);
-    let mut worst = 0.0f32;
+    let (mut worst, mut conv) = (0.0f32, 0);
     for t in 0..a.num_frames() {
         let (fa, fb) = (a.frame(t).unwrap(), b.frame(t).unwrap());
         assert_eq!(fa.n_pixels, fb.n_pixels, "frame {t}: pixel counts");
         assert_eq!(fa.converged, fb.converged, "frame {t}: convergence");
-        for (x, y) in fa.sum_w2.iter().zip(&fb.sum_w2).chain(fa.sum_w.iter().zip(&fb.sum_w)) {
-            worst = worst.max(rel(*x, *y));
-        }
-        for (x, y) in fa.u.iter().zip(&fb.u) {
+        conv += fa.converged.iter().filter(|c| **c).count();
+        let sums = fa.sum_w2.iter().zip(&fb.sum_w2).chain(fa.sum_w.iter().zip(&fb.sum_w));
+        for (x, y) in sums.chain(fa.u.iter().zip(&fb.u)) {
             worst = worst.max(rel(*x, *y));
         }
     }
-    let conv: usize = (0..a.num_frames())
-        .map(|t| a.frame(t).unwrap().converged.iter().filter(|c| **c).count())
-        .sum();
-    eprintln!("gpu uncertainty: max relative difference {worst:e}, {conv} converged pairs");
     assert!(worst <= 1e-4, "uncertainty differs by {worst} (relative)");
+    (worst, conv)
+}
+
+/// Converged (frame, Gaussian) flags of an `uncertainty` output, all frames.
+fn converged(dir: &Path) -> Vec<bool> {
+    let r = UncertaintyReader::open(&dir.join("uncertainty.parquet")).unwrap();
+    (0..r.num_frames()).flat_map(|t| r.frame(t).unwrap().converged).collect()
+}
+
+/// The paper profile's covered-pixel floor (τ = 0.5) on the Fox scene's oracle, where it
+/// matters: the GPU's table equals the CPU's (flags exact, sums within 1e-4), and the CPU's
+/// flags with τ = 0.5 differ from those with τ = 0.
+#[test]
+fn gpu_uncertainty_with_the_cover_floor_matches_the_cpu() {
+    let dir = crate::util::Dir::new();
+    grey_fox(&dir);
+    let args = ["uncertainty", "--model", "S/oracle", "--scene", "S", "--out"];
+    let run = |device: &str, out: &str, extra: &[&str]| {
+        let d = ["--quiet", "--device", device];
+        dir.run(&[&d[..], &args[..], &[out], extra].concat())
+    };
+    let cpu = run("cpu", "C", &[]);
+    assert!(cpu.status.success(), "{}", String::from_utf8_lossy(&cpu.stderr));
+    let gpu = run("gpu", "G", &[]);
+    let stderr = String::from_utf8_lossy(&gpu.stderr);
+    if stderr.contains("no GPU adapter found") {
+        eprintln!("SKIP gpu: no adapter");
+        return;
+    }
+    assert!(gpu.status.success(), "{stderr}");
+    let (worst, conv) = compare_uncertainty(&dir.join("C"), &dir.join("G"));
+    let all = run("cpu", "C0", &["--cover-min-weight", "0"]);
+    assert!(all.status.success(), "{}", String::from_utf8_lossy(&all.stderr));
+    let (tau, zero) = (converged(&dir.join("C")), converged(&dir.join("C0")));
+    let changed = tau.iter().zip(&zero).filter(|(a, b)| a != b).count();
+    eprintln!(
+        "gpu uncertainty (tau 0.5, Fox): max relative difference {worst:e}, {conv} converged \
+         pairs; tau changes {changed} of {} flags",
+        tau.len()
+    );
+    assert!(changed > 0, "the floor changes no flag: the test would not see it");
 }
 
 /// The tiny Fox scene of `tests/optimize.rs` (4 frames at 64x64, 800 oracle Gaussians) in
