@@ -13,37 +13,17 @@
 @group(0) @binding(5) var<storage, read> pixel_pass: array<u32>;      // [H, W] 1 = passes
 @group(0) @binding(6) var<storage, read_write> fail: array<atomic<u32>>; // [N]
 
-var<workgroup> max_last: atomic<u32>;
-var<workgroup> sh_max: u32;
-
 @compute @workgroup_size(16, 16)
-fn fail_pairs(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(local_invocation_id) loc: vec3<u32>,
-    @builtin(local_invocation_index) lin: u32,
-) {
-    let tile = wid.x + wid.y * P.tiles_x;
-    let px = wid.x * TILE + loc.x;
-    let py = wid.y * TILE + loc.y;
-    let inside = px < P.img_w && py < P.img_h;
-    let p = py * P.img_w + px;
-    if (lin == 0u) {
-        sh_range = vec2<u32>(tile_offsets[tile], tile_offsets[tile + 1u]);
-        atomicStore(&max_last, 0u);
-    }
-    workgroupBarrier();
+fn fail_pairs(th: TileThread) {
+    let lin = th.lin;
+    let me = pixel_of(th);
+    let range = tile_range(lin, me.tile);
     var my_last = 0u;
-    if (inside && pixel_pass[p] == 0u) {
-        my_last = last[p];
-        atomicMax(&max_last, my_last);
+    if (me.inside && pixel_pass[me.p] == 0u) {
+        my_last = last[me.p];
     }
-    workgroupBarrier();
-    if (lin == 0u) {
-        sh_max = atomicLoad(&max_last);
-    }
-    let range = workgroupUniformLoad(&sh_range);
-    let n_used = workgroupUniformLoad(&sh_max);
-    let pix = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
+    let n_used = tile_max(lin, my_last);
+    let pix = me.centre;
     var tr = 1.0;
     for (var b0 = 0u; b0 < n_used; b0 += 256u) {
         let n_b = min(256u, n_used - b0);
@@ -69,12 +49,8 @@ fn fail_pairs(
 }
 
 @compute @workgroup_size(256)
-fn centre(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+fn centre(f: Flat) {
+    let i = item_of(f);
     if (i >= P.n) {
         return;
     }

@@ -1,5 +1,6 @@
 // file: geometry.wgsl
-// Projection geometry shared by `project` and `project_bwd` (project.rs::proj_state).
+// What `project` and `project_bwd` share: the Gaussian's inputs, the projection geometry
+// (project.rs::proj_state) and the SH view direction and coefficients.
 
 struct ProjState {
     ok: bool,
@@ -14,6 +15,46 @@ struct ProjState {
     j: mat3x3<f32>,
     cov_cam: mat3x3<f32>,
     cov2d: vec3<f32>,
+}
+
+// Gaussian i's inputs, read from the kernel's `geom` ([N, 11]: mean, quat, scale, opacity).
+struct Gaussian {
+    mean: vec3<f32>,
+    quat: vec4<f32>,
+    scale: vec3<f32>,
+    opacity: f32,
+}
+
+fn load_gaussian(i: u32) -> Gaussian {
+    let b = i * 11u;
+    return Gaussian(
+        vec3<f32>(geom[b], geom[b + 1u], geom[b + 2u]),
+        vec4<f32>(geom[b + 3u], geom[b + 4u], geom[b + 5u], geom[b + 6u]),
+        vec3<f32>(geom[b + 7u], geom[b + 8u], geom[b + 9u]),
+        geom[b + 10u],
+    );
+}
+
+// SH coefficient k >= 1 of the Gaussian whose colours start at `cb` in `colors`.
+fn sh_coeff(cb: u32, k: u32) -> vec3<f32> {
+    let r = cb + 3u * k;
+    return vec3<f32>(colors[r], colors[r + 1u], colors[r + 2u]);
+}
+
+// The SH view direction of a Gaussian at `mean` with rotation `r` (cpu.rs::view_dir): unit,
+// in the world frame, or the Gaussian's local frame for colour mode 2; zero at the camera
+// centre. `.w` is |mean − centre|.
+fn view_dir(mean: vec3<f32>, r: mat3x3<f32>) -> vec4<f32> {
+    var dir = vec3<f32>(0.0);
+    let dv = mean - P.center.xyz;
+    let len = length(dv);
+    if (len > 0.0 && is_finite(len)) {
+        dir = dv / len;
+        if (P.color_mode == 2u) {
+            dir = transpose(r) * dir;
+        }
+    }
+    return vec4<f32>(dir, len);
 }
 
 fn finite_or_zero(v: f32) -> f32 {

@@ -13,17 +13,9 @@
 @group(0) @binding(5) var<storage, read_write> vals: array<u32>;      // [cap] Gaussian index
 @group(0) @binding(6) var<storage, read_write> tile_offsets: array<u32>; // [num_tiles + 1]
 
-fn flat_id(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
-    return (wid.x + wid.y * nwg.x) * 256u + lid;
-}
-
 @compute @workgroup_size(256)
-fn emit(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = flat_id(wid, nwg, lid);
+fn emit(f: Flat) {
+    let i = item_of(f);
     if (i >= P.n) {
         return;
     }
@@ -54,12 +46,8 @@ fn emit(
 }
 
 @compute @workgroup_size(256)
-fn ranges(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = flat_id(wid, nwg, lid);
+fn ranges(f: Flat) {
+    let i = item_of(f);
     let m = min(offsets[P.n], P.pair_cap);
     if (i > m) {
         return;

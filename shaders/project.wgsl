@@ -24,28 +24,21 @@ fn cull(i: u32) {
 }
 
 @compute @workgroup_size(256)
-fn main(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+fn main(f: Flat) {
+    let i = item_of(f);
     if (i == P.n) {
         counts[i] = 0u;
     }
     if (i >= P.n) {
         return;
     }
-    let base = i * 11u;
-    let mean = vec3<f32>(geom[base], geom[base + 1u], geom[base + 2u]);
-    let quat = vec4<f32>(geom[base + 3u], geom[base + 4u], geom[base + 5u], geom[base + 6u]);
-    let scale = vec3<f32>(geom[base + 7u], geom[base + 8u], geom[base + 9u]);
-    let opacity = geom[base + 10u];
+    let g3 = load_gaussian(i);
+    let opacity = g3.opacity;
     if (!(is_finite(opacity) && opacity >= ALPHA_THRESHOLD)) {
         cull(i);
         return;
     }
-    let st = proj_state(mean, quat, scale);
+    let st = proj_state(g3.mean, g3.quat, g3.scale);
     if (!st.ok) {
         cull(i);
         return;
@@ -107,21 +100,11 @@ fn main(
     if (P.color_mode == 0u) {
         rgb = dc;
     } else {
-        var dir = vec3<f32>(0.0);
-        let dv = mean - P.center.xyz;
-        let len = length(dv);
-        if (len > 0.0 && is_finite(len)) {
-            dir = dv / len;
-            if (P.color_mode == 2u) {
-                dir = transpose(quat_to_rotmat(st.q)) * dir;
-            }
-        }
-        var y = sh_basis(P.sh_degree, dir);
+        var y = sh_basis(P.sh_degree, view_dir(g3.mean, st.r).xyz);
         rgb = dc;
         let nb = (P.sh_degree + 1u) * (P.sh_degree + 1u);
         for (var k = 1u; k < nb; k++) {
-            let r = cb + 3u + (k - 1u) * 3u;
-            rgb += y[k] * vec3<f32>(colors[r], colors[r + 1u], colors[r + 2u]);
+            rgb += y[k] * sh_coeff(cb, k);
         }
         rgb = max(rgb, vec3<f32>(0.0));
     }

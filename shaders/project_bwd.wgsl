@@ -29,12 +29,8 @@ fn quat_to_rotmat_vjp(q: vec4<f32>, v: mat3x3<f32>) -> vec4<f32> {
 }
 
 @compute @workgroup_size(256)
-fn main(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+fn main(f: Flat) {
+    let i = item_of(f);
     if (i >= P.n) {
         return;
     }
@@ -49,11 +45,8 @@ fn main(
     if (splats[so + 11u] == 0.0) {
         return;
     }
-    let base = i * 11u;
-    let mean = vec3<f32>(geom[base], geom[base + 1u], geom[base + 2u]);
-    let quat = vec4<f32>(geom[base + 3u], geom[base + 4u], geom[base + 5u], geom[base + 6u]);
-    let scale = vec3<f32>(geom[base + 7u], geom[base + 8u], geom[base + 9u]);
-    let st = proj_state(mean, quat, scale);
+    let g3 = load_gaussian(i);
+    let st = proj_state(g3.mean, g3.quat, g3.scale);
     if (!st.ok) {
         return;
     }
@@ -70,28 +63,20 @@ fn main(
     var v_dc = v_rgb;
     let cb = i * P.color_stride;
     if (P.color_mode != 0u) {
-        var dir = vec3<f32>(0.0);
-        let dv = mean - P.center.xyz;
-        let len = length(dv);
-        if (len > 0.0 && is_finite(len)) {
-            dir = dv / len;
-            if (P.color_mode == 2u) {
-                dir = transpose(st.r) * dir;
-            }
-        }
+        let vd = view_dir(g3.mean, st.r);
+        let dir = vd.xyz;
+        let len = vd.w;
         var y = sh_basis_d(P.sh_degree, dir);
         let nb = (P.sh_degree + 1u) * (P.sh_degree + 1u);
         var raw = vec3<f32>(colors[cb], colors[cb + 1u], colors[cb + 2u]);
         for (var k = 1u; k < nb; k++) {
-            let r = cb + 3u + (k - 1u) * 3u;
-            raw += y[k].x * vec3<f32>(colors[r], colors[r + 1u], colors[r + 2u]);
+            raw += y[k].x * sh_coeff(cb, k);
         }
         let v = select(v_rgb, vec3<f32>(0.0), raw < vec3<f32>(0.0));
         v_dc = v;
         var v_dir = vec3<f32>(0.0);
         for (var k = 1u; k < nb; k++) {
-            let r = cb + 3u + (k - 1u) * 3u;
-            let rest = vec3<f32>(colors[r], colors[r + 1u], colors[r + 2u]);
+            let rest = sh_coeff(cb, k);
             let vr = y[k].x * v;
             grads_out[o + 14u + (k - 1u) * 3u] = vr.x;
             grads_out[o + 15u + (k - 1u) * 3u] = vr.y;
@@ -159,12 +144,12 @@ fn main(
     let v_m = 2.0 * v_cov_world * st.m;
     let v_scale = vec3<f32>(dot(st.r[0], v_m[0]), dot(st.r[1], v_m[1]), dot(st.r[2], v_m[2]));
     let v_r = mat3x3<f32>(
-        v_rot[0] + v_m[0] * scale.x,
-        v_rot[1] + v_m[1] * scale.y,
-        v_rot[2] + v_m[2] * scale.z,
+        v_rot[0] + v_m[0] * g3.scale.x,
+        v_rot[1] + v_m[1] * g3.scale.y,
+        v_rot[2] + v_m[2] * g3.scale.z,
     );
     let v_qn = quat_to_rotmat_vjp(st.q, v_r);
-    let norm = quat_norm(quat);
+    let norm = quat_norm(g3.quat);
     let dq = dot(v_qn, st.q);
     let v_quat = (v_qn - dq * st.q) / norm;
 

@@ -16,9 +16,6 @@
 @group(0) @binding(8) var<storage, read_write> scratch: array<f32>;  // [H, W, C] Σ c·w behind
 @group(0) @binding(9) var<storage, read_write> grads: array<AF32>;   // [N, 6 + C]
 
-var<workgroup> max_last: atomic<u32>;
-var<workgroup> sh_max: u32;
-
 // blend.rs::alpha_vjp: (v_mean2d, v_conic, v_opacity) packed as two vec3s.
 fn alpha_vjp(g: Splat, raw: f32, vis: f32, dx: f32, dy: f32, v_alpha: f32) -> array<vec3<f32>, 2> {
     var d = 0.0;
@@ -45,51 +42,33 @@ fn alpha_vjp(g: Splat, raw: f32, vis: f32, dx: f32, dy: f32, v_alpha: f32) -> ar
 }
 
 @compute @workgroup_size(16, 16)
-fn main(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(local_invocation_id) loc: vec3<u32>,
-    @builtin(local_invocation_index) lin: u32,
-) {
-    let tile = wid.x + wid.y * P.tiles_x;
-    let px = wid.x * TILE + loc.x;
-    let py = wid.y * TILE + loc.y;
-    let inside = px < P.img_w && py < P.img_h;
-    let p = py * P.img_w + px;
+fn main(th: TileThread) {
+    let me = pixel_of(th);
     let nc = P.nc;
     let stride = 6u + nc;
-    if (lin == 0u) {
-        sh_range = vec2<u32>(tile_offsets[tile], tile_offsets[tile + 1u]);
-        atomicStore(&max_last, 0u);
-    }
-    workgroupBarrier();
+    let range = tile_range(th.lin, me.tile);
     var my_last = 0u;
     var t = 1.0;
     var ft = 1.0;
     var v_a_pix = 0.0;
-    if (inside) {
-        my_last = last[p];
-        t = final_t[p];
+    if (me.inside) {
+        my_last = last[me.p];
+        t = final_t[me.p];
         ft = t;
-        v_a_pix = v_pix[p * (nc + 1u) + nc];
+        v_a_pix = v_pix[me.p * (nc + 1u) + nc];
         for (var q = 0u; q < nc; q++) {
-            scratch[p * nc + q] = 0.0;
+            scratch[me.p * nc + q] = 0.0;
         }
-        atomicMax(&max_last, my_last);
     }
-    workgroupBarrier();
-    if (lin == 0u) {
-        sh_max = atomicLoad(&max_last);
-    }
-    let range = workgroupUniformLoad(&sh_range);
-    let n_used = workgroupUniformLoad(&sh_max);
-    let pix = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
+    let n_used = tile_max(th.lin, my_last);
+    let pix = me.centre;
     // Batches back to front: [b0, b0 + n_b) relative to the tile's start.
     var end = n_used;
     while (end > 0u) {
         let b0 = select(0u, end - 256u, end > 256u);
         let n_b = end - b0;
-        if (lin < n_b) {
-            load_splat(lin, vals[range.x + b0 + lin]);
+        if (th.lin < n_b) {
+            load_splat(th.lin, vals[range.x + b0 + th.lin]);
         }
         workgroupBarrier();
         for (var jj = 0u; jj < n_b; jj++) {
@@ -111,15 +90,15 @@ fn main(
             let wgt = alpha * t;
             var v_a = ft * ra * v_a_pix;
             for (var q = 0u; q < nc; q++) {
-                let vp = v_pix[p * (nc + 1u) + q];
+                let vp = v_pix[me.p * (nc + 1u) + q];
                 let ch = chans[gid * nc + q];
-                let bq = scratch[p * nc + q];
+                let bq = scratch[me.p * nc + q];
                 let vc = wgt * vp;
                 if (vc != 0.0) {
                     grads_add(gid * stride + 6u + q, vc);
                 }
                 v_a += (ch * t - bq * ra) * vp;
-                scratch[p * nc + q] = bq + ch * wgt;
+                scratch[me.p * nc + q] = bq + ch * wgt;
             }
             let v = alpha_vjp(g, e.y, e.z, dx, dy, v_a);
             grads_add(gid * stride, v[0].x);

@@ -41,30 +41,23 @@ fn shared_add(which: u32, slot: u32, v: f32) {
 }
 
 @compute @workgroup_size(16, 16)
-fn main(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(local_invocation_id) loc: vec3<u32>,
-    @builtin(local_invocation_index) lin: u32,
-) {
-    let tile = wid.x + wid.y * P.tiles_x;
-    let px = wid.x * TILE + loc.x;
-    let py = wid.y * TILE + loc.y;
-    let inside = px < P.img_w && py < P.img_h;
-    let p = py * P.img_w + px;
+fn main(th: TileThread) {
+    let lin = th.lin;
+    let me = pixel_of(th);
+    let inside = me.inside;
+    let p = me.p;
     if (lin == 0u) {
-        sh_range = vec2<u32>(tile_offsets[tile], tile_offsets[tile + 1u]);
         atomicStore(&n_done, 0u);
     }
-    let range = workgroupUniformLoad(&sh_range);
+    let range = tile_range(lin, me.tile);
     if (!inside) {
         atomicAdd(&n_done, 1u);
-    }
-    if (inside) {
+    } else {
         for (var q = 0u; q < P.nc; q++) {
             img[p * P.nc + q] = 0.0;
         }
     }
-    let pix = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
+    let pix = me.centre;
     var t = 1.0;
     var done = !inside;
     var last_j = 0u;

@@ -23,7 +23,6 @@ struct SortParams {
 @group(0) @binding(8) var<storage, read_write> out_val: array<u32>;
 
 var<workgroup> counts: array<atomic<u32>, 16>;
-var<workgroup> buf: array<u32, 256>;
 
 // `num` holds the scanned tile counts [N + 1]; its last entry is the number of pairs M.
 fn element_count() -> u32 {
@@ -39,13 +38,10 @@ fn digit(i: u32) -> u32 {
 }
 
 @compute @workgroup_size(256)
-fn count(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let b = wid.x + wid.y * nwg.x;
-    let i = b * 256u + lid;
+fn count(f: Flat) {
+    let b = block_of(f);
+    let i = item_of(f);
+    let lid = f.lid;
     if (lid < 16u) {
         atomicStore(&counts[lid], 0u);
     }
@@ -60,13 +56,9 @@ fn count(
 }
 
 @compute @workgroup_size(256)
-fn scatter(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let b = wid.x + wid.y * nwg.x;
-    let i = b * 256u + lid;
+fn scatter(f: Flat) {
+    let b = block_of(f);
+    let i = item_of(f);
     let valid = i < element_count();
     var d = 16u;
     if (valid) {
@@ -75,21 +67,10 @@ fn scatter(
     var rank = 0u;
     for (var p = 0u; p < 8u; p++) {
         let v = select(0u, 1u, d == 2u * p) | select(0u, 0x10000u, d == 2u * p + 1u);
-        buf[lid] = v;
-        workgroupBarrier();
-        for (var off = 1u; off < 256u; off = off * 2u) {
-            var t = 0u;
-            if (lid >= off) {
-                t = buf[lid - off];
-            }
-            workgroupBarrier();
-            buf[lid] += t;
-            workgroupBarrier();
-        }
+        let incl = block_scan(f.lid, v);
         if ((d >> 1u) == p) {
-            rank = ((buf[lid] - v) >> (16u * (d & 1u))) & 0xffffu;
+            rank = ((incl - v) >> (16u * (d & 1u))) & 0xffffu;
         }
-        workgroupBarrier();
     }
     if (valid) {
         let dst = hist[d * S.nblocks + b] + rank;

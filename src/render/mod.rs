@@ -26,6 +26,8 @@ pub mod gpu;
 pub mod sh;
 pub mod synthetic;
 #[cfg(test)]
+mod test_scene;
+#[cfg(test)]
 mod tests;
 
 pub use cpu::SavedForBackward;
@@ -52,6 +54,24 @@ pub enum Error {
     /// The GPU failed (device lost, out of memory, kernels rejected by the driver).
     #[error("GPU: {0}")]
     Gpu(String),
+}
+
+/// Checks of a call on a saved forward state (backward, convergence): `pixel_pass`, when
+/// given, is `[H, W]` for `cam`; `same` says whether the state was saved by a render of
+/// these sizes (else: "belongs to another render").
+pub(crate) fn check_saved(
+    cam: &RenderCamera,
+    pixel_pass: Option<&[bool]>,
+    same: bool,
+) -> Result<(), Error> {
+    let expected = cam.width as usize * cam.height as usize;
+    if let Some(p) = pixel_pass.filter(|p| p.len() != expected) {
+        return Err(Error::Shape { name: "pixel_pass", got: p.len(), expected });
+    }
+    if !same {
+        return Err(Error::Settings("saved forward state belongs to another render".into()));
+    }
+    Ok(())
 }
 
 /// A pinhole camera for rendering (no distortion).
@@ -390,3 +410,26 @@ pub trait DifferentiableRenderer: Renderer {
         test: ConvergenceTest,
     ) -> Result<Vec<bool>, Error>;
 }
+
+/// `impl Renderer` for a [`DifferentiableRenderer`] whose plain render is its hard-cutoff
+/// [`DifferentiableRenderer::render_with_saved`], the saved state dropped (the CPU, GPU and
+/// either renderer: one forward pass, written once).
+macro_rules! render_is_forward {
+    ($t:ty) => {
+        impl $crate::render::Renderer for $t {
+            fn render(
+                &self,
+                cam: &$crate::render::RenderCamera,
+                inputs: &$crate::render::SplatInputs,
+                settings: &$crate::render::RenderSettings,
+            ) -> Result<$crate::render::RenderOutput, $crate::render::Error> {
+                let hard = $crate::render::Cutoff::Hard;
+                Ok($crate::render::DifferentiableRenderer::render_with_saved(
+                    self, cam, inputs, settings, hard,
+                )?
+                .0)
+            }
+        }
+    };
+}
+pub(crate) use render_is_forward;

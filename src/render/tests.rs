@@ -2,68 +2,13 @@
 //! group, per-Gaussian statistics against a tile-free brute-force reference, fuzzed inputs,
 //! thread-count determinism, invariance to culled and hidden Gaussians, and convergence.
 
-use glam::Mat4;
-
 use super::constants::T_THRESHOLD;
 use super::cpu::blend::eval_alpha;
 use super::cpu::project::{CameraConsts, project};
 use super::synthetic::{camera, cloud};
+use super::test_scene::{Scene, settings, tilted};
 use super::*;
 use crate::util::rng::Rng;
-
-/// Owned inputs of a test scene.
-#[derive(Debug, Clone)]
-struct Scene {
-    means: Vec<[f32; 3]>,
-    quats: Vec<[f32; 4]>,
-    scales: Vec<[f32; 3]>,
-    opacities: Vec<f32>,
-    dc: Vec<[f32; 3]>,
-    rest: Vec<f32>,
-    degree: u8,
-    frame: Option<ShFrame>,
-    features: Vec<f32>,
-    nf: usize,
-}
-
-impl Scene {
-    fn inputs(&self) -> SplatInputs<'_> {
-        let colors = match self.frame {
-            None => ColorSource::Rgb(&self.dc),
-            Some(frame) => {
-                ColorSource::Sh { degree: self.degree, dc: &self.dc, rest: &self.rest, frame }
-            }
-        };
-        SplatInputs {
-            means: &self.means,
-            quats: &self.quats,
-            scales: &self.scales,
-            opacities: &self.opacities,
-            colors,
-            features: &self.features,
-            num_features: self.nf,
-        }
-    }
-
-    fn from_cloud(c: super::synthetic::Cloud) -> Scene {
-        Scene {
-            means: c.means,
-            quats: c.quats,
-            scales: c.scales,
-            opacities: c.opacities,
-            dc: c.colors,
-            rest: Vec::new(),
-            degree: 0,
-            frame: None,
-            features: Vec::new(),
-            nf: 0,
-        }
-    }
-}
-
-fn settings() -> RenderSettings {
-    RenderSettings { background: [0.2, 0.5, 0.9], alpha_max: 0.99 }
-}
 
 /// A small hand-tuned scene kept away from discontinuities: distinct depths, opacities
 /// ≤ 0.7 (no alpha clamp, no termination), positive colours, all inside the view.
@@ -104,12 +49,6 @@ fn fd_scene(frame: Option<ShFrame>) -> Scene {
     s
 }
 
-fn fd_camera() -> RenderCamera {
-    let w2c =
-        Mat4::from_rotation_y(0.1) * Mat4::from_translation(glam::Vec3::new(0.05, -0.02, 0.1));
-    RenderCamera { w2c, ..camera(48, 40) }
-}
-
 /// L = Σ v·image over colour, alpha, depth and features, accumulated in f64.
 fn loss(cam: &RenderCamera, s: &Scene, v: &ImageGrads) -> f64 {
     let (out, _) =
@@ -138,7 +77,7 @@ fn convergence(
 
 #[test]
 fn gradients_match_finite_differences_for_every_parameter_group() {
-    let cam = fd_camera();
+    let cam = tilted(48, 40);
     let (w, h) = (48usize, 40usize);
     let mut rng = Rng::from_state(11);
     let mut cot = |len: usize| (0..len).map(|_| rng.range_f32(-1.0, 1.0)).collect::<Vec<f32>>();
@@ -213,7 +152,7 @@ fn gradients_match_finite_differences_for_every_parameter_group() {
 /// changes nothing else, so dL/dcx = Σ_i dL/dmean2d_x[i] (and likewise for y).
 #[test]
 fn screen_space_gradients_match_finite_differences_of_the_principal_point() {
-    let cam = fd_camera();
+    let cam = tilted(48, 40);
     let (w, h) = (48usize, 40usize);
     let mut rng = Rng::from_state(13);
     let mut cot = |len: usize| (0..len).map(|_| rng.range_f32(-1.0, 1.0)).collect::<Vec<f32>>();
@@ -293,10 +232,7 @@ fn statistics_and_images_match_a_brute_force_per_pixel_reference() {
 
 #[test]
 fn fuzzed_inputs_are_culled_never_panic_and_leave_outputs_finite() {
-    let cam = camera(32, 24);
-    let mut s = Scene::from_cloud(cloud(&cam, 20, 5.0, 5));
-    let nan = f32::NAN;
-    let inf = f32::INFINITY;
+    let (cam, s) = Scene::fuzzed();
     let poison: Vec<(usize, &str)> = vec![
         (0, "nan mean"),
         (1, "inf mean"),
@@ -309,22 +245,6 @@ fn fuzzed_inputs_are_culled_never_panic_and_leave_outputs_finite() {
         (8, "huge position"),
         (9, "negative opacity"),
     ];
-    s.means[0][1] = nan;
-    s.means[1][2] = inf;
-    s.quats[2] = [0.0; 4];
-    s.quats[3][2] = nan;
-    s.scales[4] = [1e25; 3];
-    s.scales[5][0] = inf;
-    s.means[6][2] = -3.0;
-    s.opacities[7] = nan;
-    s.means[8] = [1e30, -1e30, 1e30];
-    s.opacities[9] = -0.5;
-    // Still rendered, must not poison the image: zero scale (a point splat), NaN colour and
-    // a huge scale.
-    s.scales[10] = [0.0; 3];
-    s.dc[11] = [nan, inf, -inf];
-    // Huge but finite: covers every tile with a nearly flat footprint.
-    s.scales[12] = [1e5; 3];
     let (out, saved) =
         CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
     for (i, what) in &poison {
@@ -355,7 +275,7 @@ fn fuzzed_inputs_are_culled_never_panic_and_leave_outputs_finite() {
     assert_eq!(err.to_string(), "input 'opacities' has 19 entries, expected 20");
     let bad = RenderSettings { alpha_max: 1.0, ..settings() };
     assert!(CpuRenderer.render(&cam, &s.inputs(), &bad).is_err());
-    let bad_cam = RenderCamera { fx: nan, ..cam };
+    let bad_cam = RenderCamera { fx: f32::NAN, ..cam };
     assert!(CpuRenderer.render(&bad_cam, &s.inputs(), &settings()).is_err());
 }
 

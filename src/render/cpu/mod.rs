@@ -19,8 +19,8 @@ use crate::math::quat;
 use crate::render::constants::ALPHA_THRESHOLD;
 use crate::render::{
     ColorSource, ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, Error, ImageGrads,
-    RenderAux, RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads,
-    SplatInputs, sh,
+    RenderAux, RenderCamera, RenderOutput, RenderSettings, ShFrame, SplatGrads, SplatInputs,
+    check_saved, sh,
 };
 use backward::rasterize_bwd;
 use forward::{FwdImages, RasterInputs, failing_pairs, failing_pairs_weighted, rasterize_fwd};
@@ -230,32 +230,7 @@ fn assemble(
     out
 }
 
-impl CpuRenderer {
-    /// Forward render that also returns the per-Gaussian convergence failure counts.
-    fn forward(
-        &self,
-        cam: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-        cutoff: Cutoff,
-    ) -> Result<(RenderOutput, SavedForBackward), Error> {
-        let (saved, fwd) = run_forward(cam, inputs, settings, cutoff)?;
-        let aux = reduce_stats(&saved, &fwd);
-        let out = assemble(cam, settings, inputs.num_features, &saved, &fwd, aux);
-        Ok((out, saved))
-    }
-}
-
-impl Renderer for CpuRenderer {
-    fn render(
-        &self,
-        cam: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-    ) -> Result<RenderOutput, Error> {
-        Ok(self.forward(cam, inputs, settings, Cutoff::Hard)?.0)
-    }
-}
+super::render_is_forward!(CpuRenderer);
 
 impl DifferentiableRenderer for CpuRenderer {
     type Saved = SavedForBackward;
@@ -267,7 +242,10 @@ impl DifferentiableRenderer for CpuRenderer {
         settings: &RenderSettings,
         cutoff: Cutoff,
     ) -> Result<(RenderOutput, SavedForBackward), Error> {
-        self.forward(cam, inputs, settings, cutoff)
+        let (saved, fwd) = run_forward(cam, inputs, settings, cutoff)?;
+        let aux = reduce_stats(&saved, &fwd);
+        let out = assemble(cam, settings, inputs.num_features, &saved, &fwd, aux);
+        Ok((out, saved))
     }
 
     fn backward(
@@ -284,9 +262,7 @@ impl DifferentiableRenderer for CpuRenderer {
         let n = inputs.means.len();
         let nf = inputs.num_features;
         let nc = 4 + nf;
-        if saved.splats.len() != n || saved.final_t.len() != w * h {
-            return Err(Error::Settings("saved forward state belongs to another render".into()));
-        }
+        check_saved(cam, None, saved.splats.len() == n && saved.final_t.len() == w * h)?;
         v.check_shapes(w, h, nf)?;
         // Per-pixel cotangents of the blended channels and of alpha.
         let mut v_ch = vec![0.0f32; w * h * nc];
@@ -318,16 +294,7 @@ impl DifferentiableRenderer for CpuRenderer {
         test: ConvergenceTest,
     ) -> Result<Vec<bool>, Error> {
         let (w, h) = (cam.width as usize, cam.height as usize);
-        if pixel_pass.len() != w * h {
-            return Err(Error::Shape {
-                name: "pixel_pass",
-                got: pixel_pass.len(),
-                expected: w * h,
-            });
-        }
-        if saved.final_t.len() != w * h {
-            return Err(Error::Settings("saved forward state belongs to another render".into()));
-        }
+        check_saved(cam, Some(pixel_pass), saved.final_t.len() == w * h)?;
         if test == ConvergenceTest::CentrePixel {
             return Ok(centre_pass(&saved.splats, pixel_pass, w, h));
         }

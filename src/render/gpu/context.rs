@@ -10,10 +10,18 @@ use std::borrow::Cow;
 
 use super::super::Error;
 
-/// Kernel sources, concatenated per module (WGSL has no includes). Built in; for kernel
-/// development, `USPLAT4D_SHADER_DIR=shaders` reads them from disk at start instead.
+/// Kernel sources. WGSL has no includes: each shader module is its own file with the shared
+/// pieces it uses prepended, in the order [`Kernels::new`] lists them (`common.wgsl`:
+/// constants, `Params`, the alpha arithmetic; `threads.wgsl`: thread ids of the per-item
+/// kernels; `block_scan.wgsl`: the workgroup prefix sum; `geometry.wgsl`: projection;
+/// `raster_common.wgsl`: tile threads and batches; a generated float-atomic prelude). A
+/// shared piece may use the bindings its kernels declare under the same name (`P`,
+/// `splats`, `tile_offsets`, `geom`). Built in; for kernel development,
+/// `USPLAT4D_SHADER_DIR=shaders` reads them from disk at start instead.
 mod src {
     pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
+    pub const THREADS: &str = include_str!("../../../shaders/threads.wgsl");
+    pub const BLOCK_SCAN: &str = include_str!("../../../shaders/block_scan.wgsl");
     pub const GEOMETRY: &str = include_str!("../../../shaders/geometry.wgsl");
     pub const RASTER_COMMON: &str = include_str!("../../../shaders/raster_common.wgsl");
     pub const PROJECT: &str = include_str!("../../../shaders/project.wgsl");
@@ -164,18 +172,28 @@ impl Kernels {
         Kernels {
             project: k(
                 "project",
-                &[src::COMMON, src::GEOMETRY, src::PROJECT],
+                &[src::COMMON, src::THREADS, src::GEOMETRY, src::PROJECT],
                 &[U, R, R, R, W, W, W, W],
                 &["main"],
             ),
             isect: k(
                 "isect",
-                &[src::COMMON, src::ISECT],
+                &[src::COMMON, src::THREADS, src::ISECT],
                 &[U, R, R, W, W, W, W],
                 &["emit", "ranges"],
             ),
-            scan: k("scan", &[src::SCAN], &[U, W, W], &["scan_blocks", "add_sums"]),
-            sort: k("sort", &[src::SORT], &[U, R, R, R, R, W, W, W, W], &["count", "scatter"]),
+            scan: k(
+                "scan",
+                &[src::THREADS, src::BLOCK_SCAN, src::SCAN],
+                &[U, W, W],
+                &["scan_blocks", "add_sums"],
+            ),
+            sort: k(
+                "sort",
+                &[src::THREADS, src::BLOCK_SCAN, src::SORT],
+                &[U, R, R, R, R, W, W, W, W],
+                &["count", "scatter"],
+            ),
             fwd: k(
                 "rasterize_fwd",
                 &[src::COMMON, src::RASTER_COMMON, stats.as_str(), src::FWD],
@@ -190,13 +208,13 @@ impl Kernels {
             ),
             convergence: k(
                 "convergence",
-                &[src::COMMON, src::RASTER_COMMON, src::CONVERGENCE],
+                &[src::COMMON, src::THREADS, src::RASTER_COMMON, src::CONVERGENCE],
                 &[U, R, R, R, R, R, W],
                 &["fail_pairs", "centre"],
             ),
             project_bwd: k(
                 "project_bwd",
-                &[src::COMMON, src::GEOMETRY, src::PROJECT_BWD],
+                &[src::COMMON, src::THREADS, src::GEOMETRY, src::PROJECT_BWD],
                 &[U, R, R, R, R, W],
                 &["main"],
             ),

@@ -4,7 +4,7 @@
 use super::super::cpu::SavedForBackward;
 use super::super::{
     ConvergenceTest, CpuRenderer, Cutoff, DifferentiableRenderer, Error, ImageGrads, RenderCamera,
-    RenderOutput, RenderSettings, Renderer, SplatGrads, SplatInputs,
+    RenderOutput, RenderSettings, SplatGrads, SplatInputs,
 };
 use super::{GpuRenderer, GpuSaved};
 
@@ -50,37 +50,25 @@ fn mismatch() -> Error {
     Error::Settings("saved forward state belongs to the other renderer".into())
 }
 
-impl Renderer for AnyRenderer {
-    fn render(
-        &self,
-        camera: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-    ) -> Result<RenderOutput, Error> {
-        match self {
-            AnyRenderer::Cpu(r) => r.render(camera, inputs, settings),
-            AnyRenderer::Gpu(r) => r.render(camera, inputs, settings),
-        }
-    }
-}
+super::super::render_is_forward!(AnyRenderer);
 
 impl DifferentiableRenderer for AnyRenderer {
     type Saved = AnySaved;
 
     fn render_with_saved(
         &self,
-        camera: &RenderCamera,
+        cam: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
         cutoff: Cutoff,
     ) -> Result<(RenderOutput, AnySaved), Error> {
         Ok(match self {
             AnyRenderer::Cpu(r) => {
-                let (o, s) = r.render_with_saved(camera, inputs, settings, cutoff)?;
+                let (o, s) = r.render_with_saved(cam, inputs, settings, cutoff)?;
                 (o, AnySaved::Cpu(s))
             }
             AnyRenderer::Gpu(r) => {
-                let (o, s) = r.render_with_saved(camera, inputs, settings, cutoff)?;
+                let (o, s) = r.render_with_saved(cam, inputs, settings, cutoff)?;
                 (o, AnySaved::Gpu(Box::new(s)))
             }
         })
@@ -88,26 +76,22 @@ impl DifferentiableRenderer for AnyRenderer {
 
     fn backward(
         &self,
-        camera: &RenderCamera,
+        cam: &RenderCamera,
         inputs: &SplatInputs,
         settings: &RenderSettings,
         saved: &AnySaved,
         grads: &ImageGrads,
     ) -> Result<SplatGrads, Error> {
         match (self, saved) {
-            (AnyRenderer::Cpu(r), AnySaved::Cpu(s)) => {
-                r.backward(camera, inputs, settings, s, grads)
-            }
-            (AnyRenderer::Gpu(r), AnySaved::Gpu(s)) => {
-                r.backward(camera, inputs, settings, s, grads)
-            }
+            (AnyRenderer::Cpu(r), AnySaved::Cpu(s)) => r.backward(cam, inputs, settings, s, grads),
+            (AnyRenderer::Gpu(r), AnySaved::Gpu(s)) => r.backward(cam, inputs, settings, s, grads),
             _ => Err(mismatch()),
         }
     }
 
     fn convergence_saved(
         &self,
-        camera: &RenderCamera,
+        cam: &RenderCamera,
         settings: &RenderSettings,
         saved: &AnySaved,
         pixel_pass: &[bool],
@@ -115,10 +99,10 @@ impl DifferentiableRenderer for AnyRenderer {
     ) -> Result<Vec<bool>, Error> {
         match (self, saved) {
             (AnyRenderer::Cpu(r), AnySaved::Cpu(s)) => {
-                r.convergence_saved(camera, settings, s, pixel_pass, test)
+                r.convergence_saved(cam, settings, s, pixel_pass, test)
             }
             (AnyRenderer::Gpu(r), AnySaved::Gpu(s)) => {
-                r.convergence_saved(camera, settings, s, pixel_pass, test)
+                r.convergence_saved(cam, settings, s, pixel_pass, test)
             }
             _ => Err(mismatch()),
         }

@@ -1,5 +1,6 @@
-//! The GPU rasterizer on wgpu (WGSL kernels in `shaders/`), implementing [`Renderer`] and
-//! [`DifferentiableRenderer`] with the CPU renderer's semantics.
+//! The GPU rasterizer on wgpu (WGSL kernels in `shaders/`), implementing
+//! [`Renderer`](super::Renderer) and [`DifferentiableRenderer`] with the CPU renderer's
+//! semantics.
 //!
 //! Stages, one kernel each (gsplat's / Brush's structure): `project` (EWA projection, 0.3 px
 //! low-pass, opacity-aware extent, the CPU's culling of poisoned inputs, SH colour in the
@@ -40,7 +41,7 @@ use params::ColorMode;
 use super::cpu::check_inputs;
 use super::{
     ColorSource, ConvergenceTest, Cutoff, DifferentiableRenderer, Error, ImageGrads, RenderAux,
-    RenderCamera, RenderOutput, RenderSettings, Renderer, ShFrame, SplatGrads, SplatInputs, sh,
+    RenderCamera, RenderOutput, RenderSettings, ShFrame, SplatGrads, SplatInputs, check_saved, sh,
 };
 
 /// The GPU rasterizer. Cheap to clone (shares the device and the buffer pool).
@@ -116,48 +117,6 @@ impl GpuRenderer {
             w: cam.width as usize,
             h: cam.height as usize,
             pair_cap,
-        }
-    }
-
-    /// Upload the inputs and run the forward stages; returns the frame, the sorted half
-    /// and the readback `[H, W, C]` image, `[H, W]` T, `[N, 4]` statistics, M.
-    fn forward(
-        &self,
-        cam: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-        cutoff: Cutoff,
-    ) -> Result<(RenderOutput, GpuSaved), Error> {
-        check_inputs(cam, inputs, settings)?;
-        let _span = tracing::debug_span!("render.gpu.forward", n = inputs.means.len()).entered();
-        let n = inputs.means.len();
-        let mut cap = (4 * n).max(1 << 14);
-        loop {
-            let key = Self::key(cam, inputs, cap);
-            let mut frame = self.pool.take(&self.ctx, key);
-            if self.junk {
-                frame.fill_junk(&self.ctx);
-            }
-            let (sorted, words) = self.run_forward(&mut frame, cam, inputs, settings, cutoff)?;
-            let m = *words.last().expect("pair count") as usize;
-            if m > frame.key.pair_cap {
-                cap = m + m / 4;
-                drop(frame);
-                continue;
-            }
-            let out = assemble(&frame.key, settings, &words);
-            let saved = GpuSaved {
-                frame: std::sync::Mutex::new(PooledFrame {
-                    frame: Some(frame),
-                    pool: self.pool.clone(),
-                }),
-                sorted,
-                n,
-                width: cam.width,
-                height: cam.height,
-                num_pairs: m,
-            };
-            return Ok((out, saved));
         }
     }
 
@@ -349,20 +308,14 @@ fn assemble(key: &FrameKey, settings: &RenderSettings, words: &[u32]) -> RenderO
     out
 }
 
-impl Renderer for GpuRenderer {
-    fn render(
-        &self,
-        cam: &RenderCamera,
-        inputs: &SplatInputs,
-        settings: &RenderSettings,
-    ) -> Result<RenderOutput, Error> {
-        Ok(self.forward(cam, inputs, settings, Cutoff::Hard)?.0)
-    }
-}
+super::render_is_forward!(GpuRenderer);
 
 impl DifferentiableRenderer for GpuRenderer {
     type Saved = GpuSaved;
 
+    /// Upload the inputs and run the forward stages; one readback (`[H, W, C]` image,
+    /// `[H, W]` T, `[N, 4]` statistics, M). A frame whose pairs overflow the intersection
+    /// buffer is rendered again with a larger one.
     fn render_with_saved(
         &self,
         cam: &RenderCamera,
@@ -370,7 +323,37 @@ impl DifferentiableRenderer for GpuRenderer {
         settings: &RenderSettings,
         cutoff: Cutoff,
     ) -> Result<(RenderOutput, GpuSaved), Error> {
-        self.forward(cam, inputs, settings, cutoff)
+        check_inputs(cam, inputs, settings)?;
+        let _span = tracing::debug_span!("render.gpu.forward", n = inputs.means.len()).entered();
+        let n = inputs.means.len();
+        let mut cap = (4 * n).max(1 << 14);
+        loop {
+            let key = Self::key(cam, inputs, cap);
+            let mut frame = self.pool.take(&self.ctx, key);
+            if self.junk {
+                frame.fill_junk(&self.ctx);
+            }
+            let (sorted, words) = self.run_forward(&mut frame, cam, inputs, settings, cutoff)?;
+            let m = *words.last().expect("pair count") as usize;
+            if m > frame.key.pair_cap {
+                cap = m + m / 4;
+                drop(frame);
+                continue;
+            }
+            let out = assemble(&frame.key, settings, &words);
+            let saved = GpuSaved {
+                frame: std::sync::Mutex::new(PooledFrame {
+                    frame: Some(frame),
+                    pool: self.pool.clone(),
+                }),
+                sorted,
+                n,
+                width: cam.width,
+                height: cam.height,
+                num_pairs: m,
+            };
+            return Ok((out, saved));
+        }
     }
 
     fn backward(
@@ -385,16 +368,13 @@ impl DifferentiableRenderer for GpuRenderer {
         let _span = tracing::debug_span!("render.gpu.backward", n = inputs.means.len()).entered();
         let (w, h) = (cam.width as usize, cam.height as usize);
         let n = inputs.means.len();
-        if saved.n != n || saved.width != cam.width || saved.height != cam.height {
-            return Err(Error::Settings("saved forward state belongs to another render".into()));
-        }
+        let same_size = saved.width == cam.width && saved.height == cam.height;
+        check_saved(cam, None, saved.n == n && same_size)?;
         let mut guard = saved.frame.lock().map_err(gpu_err)?;
         let frame = guard.frame.as_mut().expect("saved frame");
         let key = frame.key;
         let (nf, nc) = (key.nf, key.nc);
-        if inputs.num_features != nf {
-            return Err(Error::Settings("saved forward state belongs to another render".into()));
-        }
+        check_saved(cam, None, inputs.num_features == nf)?;
         v.check_shapes(w, h, nf)?;
         // [H, W, C + 1]: dL/d blended channels, then dL/d alpha (as the CPU backward).
         let mut v_pix = vec![0.0f32; w * h * (nc + 1)];
@@ -483,16 +463,8 @@ impl DifferentiableRenderer for GpuRenderer {
         test: ConvergenceTest,
     ) -> Result<Vec<bool>, Error> {
         let (w, h) = (cam.width as usize, cam.height as usize);
-        if pixel_pass.len() != w * h {
-            return Err(Error::Shape {
-                name: "pixel_pass",
-                got: pixel_pass.len(),
-                expected: w * h,
-            });
-        }
-        if saved.width != cam.width || saved.height != cam.height {
-            return Err(Error::Settings("saved forward state belongs to another render".into()));
-        }
+        let same_size = saved.width == cam.width && saved.height == cam.height;
+        check_saved(cam, Some(pixel_pass), same_size)?;
         let mut guard = saved.frame.lock().map_err(gpu_err)?;
         let frame = guard.frame.as_mut().expect("saved frame");
         let ctx = &*self.ctx;

@@ -2,12 +2,13 @@
 //! RGB, SH in the world and local frames and feature channels; the CPU tests' fuzzed inputs;
 //! a scene whose intersection list overflows the first pair buffer), every frame's buffers
 //! filled with junk first. Tolerances: images 1e-4 absolute; statistics 1e-4 relative;
-//! gradients 1e-3 relative to the largest magnitude of their group (see `grad_err`).
-//! Without any adapter the tests print `SKIP gpu: no adapter` and return.
+//! gradients 1e-3 relative to the largest magnitude of their group (see `grad_err`);
+//! convergence flags (all covered pixels, the centre pixel, and the covered-pixel floor τ
+//! of `--cover-min-weight`) exact: the GPU blends with the CPU's arithmetic, so T·α >= τ
+//! is decided alike. Without any adapter the tests print `SKIP gpu: no adapter` and return.
 
-use glam::Mat4;
-
-use super::super::synthetic::{camera, cloud};
+use super::super::synthetic::camera;
+use super::super::test_scene::{Scene, settings, tilted};
 use super::super::*;
 use super::GpuRenderer;
 use crate::util::rng::Rng;
@@ -25,75 +26,6 @@ fn gpu() -> Option<GpuRenderer> {
         }
         Err(e) => panic!("GPU adapter present but unusable: {e}"),
     }
-}
-
-#[derive(Debug, Clone)]
-struct Scene {
-    means: Vec<[f32; 3]>,
-    quats: Vec<[f32; 4]>,
-    scales: Vec<[f32; 3]>,
-    opacities: Vec<f32>,
-    dc: Vec<[f32; 3]>,
-    rest: Vec<f32>,
-    degree: u8,
-    frame: Option<ShFrame>,
-    features: Vec<f32>,
-    nf: usize,
-}
-
-impl Scene {
-    fn new(
-        cam: &RenderCamera,
-        n: usize,
-        complexity: f32,
-        seed: u64,
-        frame: Option<ShFrame>,
-    ) -> Scene {
-        let c = cloud(cam, n, complexity, seed);
-        let mut rng = Rng::from_state(seed ^ 0x5eed);
-        let (degree, nf) = if frame.is_some() { (3, 2) } else { (0, 0) };
-        let k3 = 3 * (sh::num_basis(degree) - 1);
-        Scene {
-            rest: (0..n * k3).map(|_| rng.range_f32(-0.3, 0.3)).collect(),
-            features: (0..n * nf).map(|_| rng.range_f32(-1.0, 1.0)).collect(),
-            means: c.means,
-            quats: c.quats,
-            scales: c.scales,
-            opacities: c.opacities,
-            dc: c.colors,
-            degree,
-            frame,
-            nf,
-        }
-    }
-
-    fn inputs(&self) -> SplatInputs<'_> {
-        let colors = match self.frame {
-            None => ColorSource::Rgb(&self.dc),
-            Some(frame) => {
-                ColorSource::Sh { degree: self.degree, dc: &self.dc, rest: &self.rest, frame }
-            }
-        };
-        SplatInputs {
-            means: &self.means,
-            quats: &self.quats,
-            scales: &self.scales,
-            opacities: &self.opacities,
-            colors,
-            features: &self.features,
-            num_features: self.nf,
-        }
-    }
-}
-
-fn settings() -> RenderSettings {
-    RenderSettings { background: [0.2, 0.5, 0.9], alpha_max: 0.99 }
-}
-
-fn tilted(w: u32, h: u32) -> RenderCamera {
-    let w2c =
-        Mat4::from_rotation_y(0.1) * Mat4::from_translation(glam::Vec3::new(0.05, -0.02, 0.1));
-    RenderCamera { w2c, ..camera(w, h) }
 }
 
 fn max_abs(a: &[f32], b: &[f32]) -> f32 {
@@ -210,31 +142,10 @@ fn overflowing_intersection_list_grows_and_rerenders() {
     eprintln!("large list: image error {i:e}, statistics error {st:e}");
 }
 
-/// The CPU tests' poisoned inputs (NaN, Inf, zero quaternion, huge scales, behind the camera).
-fn fuzzed() -> (RenderCamera, Scene) {
-    let cam = camera(32, 24);
-    let mut s = Scene::new(&cam, 20, 5.0, 5, None);
-    let (nan, inf) = (f32::NAN, f32::INFINITY);
-    s.means[0][1] = nan;
-    s.means[1][2] = inf;
-    s.quats[2] = [0.0; 4];
-    s.quats[3][2] = nan;
-    s.scales[4] = [1e25; 3];
-    s.scales[5][0] = inf;
-    s.means[6][2] = -3.0;
-    s.opacities[7] = nan;
-    s.means[8] = [1e30, -1e30, 1e30];
-    s.opacities[9] = -0.5;
-    s.scales[10] = [0.0; 3];
-    s.dc[11] = [nan, inf, -inf];
-    s.scales[12] = [1e5; 3];
-    (cam, s)
-}
-
 #[test]
 fn fuzzed_inputs_are_culled_as_on_the_cpu() {
     let Some(gpu) = gpu() else { return };
-    let (cam, s) = fuzzed();
+    let (cam, s) = Scene::fuzzed();
     let (c, cs) =
         CpuRenderer.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
     let (g, gs) = gpu.render_with_saved(&cam, &s.inputs(), &settings(), Cutoff::Hard).unwrap();
@@ -272,6 +183,63 @@ fn gradients_match_the_cpu() {
         worst = worst.max(check_grads(&gg, &cg, &what));
     }
     eprintln!("max gradient error (relative to group max) {worst:e}");
+}
+
+/// `[H, W]` pixel pass map with about `fail` of the pixels failing.
+fn pass_map(w: usize, h: usize, fail: f32, seed: u64) -> Vec<bool> {
+    let mut rng = Rng::from_state(seed);
+    (0..w * h).map(|_| rng.uniform_f32() >= fail).collect()
+}
+
+/// The covered-pixel floor τ (`--cover-min-weight`): the GPU's `fail_pairs` with
+/// `min_weight` > 0 against the CPU's `failing_pairs_weighted`, exactly, on random clouds
+/// (RGB and SH, hard and smooth cutoff, several failing fractions, τ from 1e-3 to 0.9), the
+/// fuzzed inputs, and a frame rendered twice (reused, junk-filled convergence buffers).
+#[test]
+fn weighted_convergence_matches_the_cpu() {
+    let Some(gpu) = gpu() else { return };
+    let taus = [1e-3, 0.05, 0.2, 0.5, 0.9];
+    let mut differ_from_all = 0;
+    let mut cases = Vec::new();
+    for (seed, frame, cutoff, complexity) in [
+        (31, None, Cutoff::Hard, 6.0),
+        (32, Some(ShFrame::World), Cutoff::Hard, 12.0),
+        (33, Some(ShFrame::Local), Cutoff::Smooth, 3.0),
+    ] {
+        let cam = tilted(72, 40);
+        cases.push((cam, Scene::new(&cam, 400, complexity, seed, frame), cutoff, seed));
+    }
+    let (fcam, fscene) = Scene::fuzzed();
+    cases.push((fcam, fscene, Cutoff::Hard, 34));
+    for (cam, s, cutoff, seed) in &cases {
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let (c, cs) =
+            CpuRenderer.render_with_saved(cam, &s.inputs(), &settings(), *cutoff).unwrap();
+        let (g, gs) = gpu.render_with_saved(cam, &s.inputs(), &settings(), *cutoff).unwrap();
+        check_forward(&g, &c, &format!("weighted convergence seed {seed}"));
+        for (k, fail) in [0.03, 0.3, 1.0].into_iter().enumerate() {
+            let pass = pass_map(w, h, fail, seed * 10 + k as u64);
+            let all = ConvergenceTest::AllCoveredPixels;
+            let want_all =
+                CpuRenderer.convergence_saved(cam, &settings(), &cs, &pass, all).unwrap();
+            for tau in taus {
+                let test = ConvergenceTest::WeightedPixels(tau);
+                let want =
+                    CpuRenderer.convergence_saved(cam, &settings(), &cs, &pass, test).unwrap();
+                let got = gpu.convergence_saved(cam, &settings(), &gs, &pass, test).unwrap();
+                let n_diff = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+                assert_eq!(
+                    n_diff, 0,
+                    "seed {seed}, failing {fail}, τ {tau}: {n_diff} flags differ"
+                );
+                differ_from_all += want.iter().zip(&want_all).filter(|(a, b)| a != b).count();
+                // Monotone: a higher floor tests fewer pixels, so nothing that passed fails.
+                assert!(want.iter().zip(&want_all).all(|(wt, wa)| *wt || !*wa));
+            }
+        }
+    }
+    eprintln!("weighted convergence: {differ_from_all} flags differ from the unweighted test");
+    assert!(differ_from_all > 0, "the floor never mattered: the test is trivial");
 }
 
 #[test]
