@@ -116,28 +116,26 @@ use crate::tables;
 #[test]
 fn bad_trajectories_name_file_column_and_row() {
     let dir = tempfile::tempdir().unwrap();
-    let p = write_bad_model(dir.path(), |f| f[1].position[2][1] = f32::NAN);
-    let m = Model::load(dir.path()).unwrap();
-    assert_eq!(
-        m.frame(1).unwrap_err().to_string(),
-        format!("{}: column 'y', row 5: non-finite value NaN", p.display())
-    );
-    let p = write_bad_model(dir.path(), |f| f[0].rotation[1] = [0.0, 0.0, 0.0, 0.0]);
-    let m = Model::load(dir.path()).unwrap();
-    assert_eq!(
-        m.frame(0).unwrap_err().to_string(),
-        format!(
-            "{}: column 'qw,qx,qy,qz', row 1: quaternion (0, 0, 0, 0) has norm 0, expected 1",
-            p.display()
+    // The error of reading frame `t` of the model edited by `edit`, and its trajectories file.
+    let frame_err = |t: usize, edit: fn(&mut Vec<FrameState>)| {
+        let p = write_bad_model(dir.path(), edit);
+        (
+            Model::load(dir.path()).unwrap().frame(t).unwrap_err().to_string(),
+            p.display().to_string(),
         )
-    );
-    let p = write_bad_model(dir.path(), |f| f[1].frame = 2);
-    let m = Model::load(dir.path()).unwrap();
+    };
+    let (err, p) = frame_err(1, |f| f[1].position[2][1] = f32::NAN);
+    assert_eq!(err, format!("{p}: column 'y', row 5: non-finite value NaN"));
+    let (err, p) = frame_err(0, |f| f[0].rotation[1] = [0.0, 0.0, 0.0, 0.0]);
     assert_eq!(
-        m.frame(1).unwrap_err().to_string(),
+        err,
+        format!("{p}: column 'qw,qx,qy,qz', row 1: quaternion (0, 0, 0, 0) has norm 0, expected 1")
+    );
+    let (err, p) = frame_err(1, |f| f[1].frame = 2);
+    assert_eq!(
+        err,
         format!(
-            "{}: frame 1: row 3 has frame 2, expected 1 (frames must be 0..T-1 without gaps, one row group each)",
-            p.display()
+            "{p}: frame 1: row 3 has frame 2, expected 1 (frames must be 0..T-1 without gaps, one row group each)"
         )
     );
 }
@@ -166,18 +164,19 @@ fn wrong_table_kind_and_truncation_are_reported() {
 fn duplicate_ids_and_bad_opacity_are_rejected() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("gaussians.parquet");
-    let (mut g, _) = sample_model();
-    g.id[2] = 7;
-    tables::gaussians::write(&p, &g, &Provenance::default()).unwrap();
+    // The error of reading back the sample Gaussians edited by `edit`.
+    let read_err = |edit: fn(&mut gaussians::Gaussians)| {
+        let (mut g, _) = sample_model();
+        edit(&mut g);
+        tables::gaussians::write(&p, &g, &Provenance::default()).unwrap();
+        tables::gaussians::read(&p).unwrap_err().to_string()
+    };
     assert_eq!(
-        tables::gaussians::read(&p).unwrap_err().to_string(),
+        read_err(|g| g.id[2] = 7),
         format!("{}: column 'gaussian_id', row 2: duplicate id 7 (first at row 0)", p.display())
     );
-    let (mut g, _) = sample_model();
-    g.opacity[1] = 1.5;
-    tables::gaussians::write(&p, &g, &Provenance::default()).unwrap();
     assert_eq!(
-        tables::gaussians::read(&p).unwrap_err().to_string(),
+        read_err(|g| g.opacity[1] = 1.5),
         format!("{}: column 'opacity', row 1: value 1.5 outside [0, 1]", p.display())
     );
 }
@@ -204,18 +203,20 @@ fn non_finite_list_items_name_their_row() {
     }
     cameras[8].w2c[3] = f64::NAN;
     cameras[9].distortion = Some([0.1, 0.0, 0.0, f64::INFINITY, 0.0]);
-    let scene = Scene { dir: dir.path().into(), cameras: cameras.clone() };
-    scene.save(&Provenance::default()).unwrap();
+    // The error of loading a scene of `cameras`.
+    let load_err = |cameras: &[Camera]| {
+        let scene = Scene { dir: dir.path().into(), cameras: cameras.to_vec() };
+        scene.save(&Provenance::default()).unwrap();
+        Scene::load(dir.path()).unwrap_err().to_string()
+    };
     let p = Scene::cameras_path(dir.path());
     assert_eq!(
-        Scene::load(dir.path()).unwrap_err().to_string(),
+        load_err(&cameras),
         format!("{}: column 'w2c', row 8: non-finite value NaN (item 3 of 16)", p.display())
     );
     cameras[8].w2c[3] = 0.0;
-    let scene = Scene { dir: dir.path().into(), cameras };
-    scene.save(&Provenance::default()).unwrap();
     assert_eq!(
-        Scene::load(dir.path()).unwrap_err().to_string(),
+        load_err(&cameras),
         format!("{}: column 'distortion', row 9: non-finite value inf (item 3 of 5)", p.display())
     );
     let (mut g, _) = sample_model();
@@ -232,16 +233,14 @@ fn non_finite_list_items_name_their_row() {
 /// Reads `path` with every table reader (whole tables and every frame of per-frame
 /// tables), returning each reader's error message; Ok results are reported as `None`.
 pub(crate) fn read_with_every_reader(path: &Path) -> Vec<(&'static str, Option<String>)> {
-    fn frames<R>(
-        open: Result<R>,
-        num: impl Fn(&R) -> usize,
-        frame: impl Fn(&R, usize) -> Result<()>,
-    ) -> Option<String> {
-        let r = match open {
-            Ok(r) => r,
-            Err(e) => return Some(e.to_string()),
+    /// The first error of opening a per-frame table or reading any of its frames.
+    macro_rules! frames {
+        ($open:expr) => {
+            match $open {
+                Ok(r) => (0..r.num_frames()).find_map(|t| r.frame(t).err().map(|e| e.to_string())),
+                Err(e) => Some(e.to_string()),
+            }
         };
-        (0..num(&r)).find_map(|t| frame(&r, t).err().map(|e| e.to_string()))
     }
     vec![
         ("cameras", cameras::read(path).err().map(|e| e.to_string())),
@@ -250,39 +249,22 @@ pub(crate) fn read_with_every_reader(path: &Path) -> Vec<(&'static str, Option<S
         ("key_nodes", key_nodes::read(path).err().map(|e| e.to_string())),
         ("metrics", metrics::read(path).err().map(|e| e.to_string())),
         ("segments", segments::read(path).err().map(|e| e.to_string())),
-        (
-            "uncertainty",
-            frames(
-                uncertainty::UncertaintyReader::open(path),
-                |r| r.num_frames(),
-                |r, t| r.frame(t).map(drop),
-            ),
-        ),
-        (
-            "trajectories",
-            frames(
-                trajectories::TrajectoryReader::open(path, &sample_model().0.id),
-                |r| r.num_frames(),
-                |r, t| r.frame(t).map(drop),
-            ),
-        ),
-        (
-            "tracks_2d",
-            frames(
-                tracks_2d::Tracks2dReader::open(path),
-                |r| r.num_frames(),
-                |r, t| r.frame(t).map(drop),
-            ),
-        ),
-        (
-            "tracks_3d",
-            frames(
-                tracks_3d::Tracks3dReader::open(path),
-                |r| r.num_frames(),
-                |r, t| r.frame(t).map(drop),
-            ),
-        ),
+        ("uncertainty", frames!(uncertainty::UncertaintyReader::open(path))),
+        ("trajectories", frames!(trajectories::TrajectoryReader::open(path, &sample_model().0.id))),
+        ("tracks_2d", frames!(tracks_2d::Tracks2dReader::open(path))),
+        ("tracks_3d", frames!(tracks_3d::Tracks3dReader::open(path))),
     ]
+}
+
+/// The `.parquet` files of `dir`, sorted.
+fn parquet_files(dir: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
+        .collect();
+    files.sort();
+    files
 }
 
 /// The Parquet files that crashed parquet-rs 60 (`../shared/data/bad-parquet/`, corrupted
@@ -300,12 +282,7 @@ fn corrupted_parquet_is_an_error_in_every_reader() {
         );
         return;
     };
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
-        .collect();
-    files.sort();
+    let files = parquet_files(&dir);
     assert_eq!(files.len(), 9);
     for f in &files {
         for (reader, result) in read_with_every_reader(f) {
@@ -321,12 +298,7 @@ fn corrupted_parquet_is_an_error_in_every_reader() {
 #[test]
 fn fuzz_crashes_are_errors_in_every_reader() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_crashes");
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
-        .collect();
-    files.sort();
+    let files = parquet_files(&dir);
     assert!(!files.is_empty());
     for f in &files {
         let results = std::panic::catch_unwind(|| read_with_every_reader(f))

@@ -55,6 +55,23 @@ impl DType {
         }
     }
 
+    /// The dtype of a numpy type code without its byte order (`f4`, `i8`, `b1`, ...); `None`
+    /// for the codes the importers do not read.
+    pub fn from_numpy(code: &str) -> Option<DType> {
+        Some(match code {
+            "f2" => DType::F16,
+            "f4" => DType::F32,
+            "f8" => DType::F64,
+            "i1" => DType::I8,
+            "u1" => DType::U8,
+            "i2" => DType::I16,
+            "i4" => DType::I32,
+            "i8" => DType::I64,
+            "b1" => DType::Bool,
+            _ => return None,
+        })
+    }
+
     /// Decode `count` little-endian elements gathered by `index` (element positions in
     /// `bytes`; the caller has checked that every position is in range).
     pub fn decode(self, bytes: &[u8], index: impl Iterator<Item = usize>) -> Data {

@@ -43,18 +43,7 @@ pub fn parse_npy(bytes: &[u8]) -> Result<Array, String> {
     if order == ">" && !code.ends_with('1') {
         return Err(format!("big-endian dtype '{descr}' is not supported"));
     }
-    let dtype = match code {
-        "f2" => DType::F16,
-        "f4" => DType::F32,
-        "f8" => DType::F64,
-        "i1" => DType::I8,
-        "u1" => DType::U8,
-        "i2" => DType::I16,
-        "i4" => DType::I32,
-        "i8" => DType::I64,
-        "b1" => DType::Bool,
-        _ => return Err(format!("unsupported dtype '{descr}'")),
-    };
+    let dtype = DType::from_numpy(code).ok_or_else(|| format!("unsupported dtype '{descr}'"))?;
     if field("fortran_order").is_some_and(|v| v.starts_with("True")) {
         return Err("Fortran-order arrays are not supported".into());
     }

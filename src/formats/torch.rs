@@ -559,20 +559,8 @@ impl Decoder<'_> {
         if order == ">" {
             return Err(self.key_err(key, "big-endian numpy scalar"));
         }
-        let dt = match descr.as_str() {
-            "f2" => DType::F16,
-            "f4" => DType::F32,
-            "f8" => DType::F64,
-            "i1" => DType::I8,
-            "u1" => DType::U8,
-            "i2" => DType::I16,
-            "i4" => DType::I32,
-            "i8" => DType::I64,
-            "b1" => DType::Bool,
-            other => {
-                return Err(self.key_err(key, format!("unsupported numpy scalar type '{other}'")));
-            }
-        };
+        let dt = DType::from_numpy(&descr)
+            .ok_or_else(|| self.key_err(key, format!("unsupported numpy scalar type '{descr}'")))?;
         if bytes.len() != dt.size() {
             return Err(self.key_err(
                 key,

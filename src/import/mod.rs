@@ -263,22 +263,7 @@ mod tests {
                 cam(t, w)
             })
             .collect();
-        let model: Vec<ModelCamera> = scene
-            .iter()
-            .map(|c| {
-                let w = truth.w2c_to_model(&c.w2c);
-                ModelCamera {
-                    frame: c.frame,
-                    fx: 50.0,
-                    fy: 50.0,
-                    cx: 32.0,
-                    cy: 24.0,
-                    width: 64,
-                    height: 48,
-                    w2c: w,
-                }
-            })
-            .collect();
+        let model: Vec<ModelCamera> = scene.iter().map(|c| truth.camera_to_model(c)).collect();
         let refs: Vec<&Camera> = scene.iter().collect();
         let (sim, report) = fit_similarity(&refs, &model);
         assert!(report.is_empty(), "{report}");

@@ -15,21 +15,32 @@ pub fn to_rotmat(q: [f32; 4]) -> Mat3 {
 
 /// VJP of [`to_rotmat`]: `dL/dq` (unit q) from `dL/dR`.
 pub fn to_rotmat_vjp(q: [f32; 4], v_r: Mat3) -> [f32; 4] {
-    let [w, x, y, z] = q;
-    let v = |i: usize, j: usize| v_r.col(j)[i];
-    [
-        2.0 * (x * (v(2, 1) - v(1, 2)) + y * (v(0, 2) - v(2, 0)) + z * (v(1, 0) - v(0, 1))),
-        2.0 * (-2.0 * x * (v(1, 1) + v(2, 2))
-            + y * (v(1, 0) + v(0, 1))
-            + z * (v(2, 0) + v(0, 2))
-            + w * (v(2, 1) - v(1, 2))),
-        2.0 * (x * (v(1, 0) + v(0, 1)) - 2.0 * y * (v(0, 0) + v(2, 2))
-            + z * (v(2, 1) + v(1, 2))
-            + w * (v(0, 2) - v(2, 0))),
-        2.0 * (x * (v(2, 0) + v(0, 2)) + y * (v(2, 1) + v(1, 2)) - 2.0 * z * (v(0, 0) + v(1, 1))
-            + w * (v(1, 0) - v(0, 1))),
-    ]
+    rotmat_vjp!(q, |i: usize, j: usize| v_r.col(j)[i])
 }
+
+/// The VJP of the rotation matrix of a unit quaternion `q = [w, x, y, z]` (the formula's
+/// polynomial): `dL/dq` from `v(i, j) = dL/dR[i][j]`. Written once for the f32
+/// [`to_rotmat_vjp`] and the f64 [`super::quat64::to_rotmat_vjp`], whose matrices differ.
+macro_rules! rotmat_vjp {
+    ($q:expr, $v:expr) => {{
+        let [w, x, y, z] = $q;
+        let v = $v;
+        [
+            2.0 * (x * (v(2, 1) - v(1, 2)) + y * (v(0, 2) - v(2, 0)) + z * (v(1, 0) - v(0, 1))),
+            2.0 * (-2.0 * x * (v(1, 1) + v(2, 2))
+                + y * (v(1, 0) + v(0, 1))
+                + z * (v(2, 0) + v(0, 2))
+                + w * (v(2, 1) - v(1, 2))),
+            2.0 * (x * (v(1, 0) + v(0, 1)) - 2.0 * y * (v(0, 0) + v(2, 2))
+                + z * (v(2, 1) + v(1, 2))
+                + w * (v(0, 2) - v(2, 0))),
+            2.0 * (x * (v(2, 0) + v(0, 2)) + y * (v(2, 1) + v(1, 2))
+                - 2.0 * z * (v(0, 0) + v(1, 1))
+                + w * (v(1, 0) - v(0, 1))),
+        ]
+    }};
+}
+pub(crate) use rotmat_vjp;
 
 /// The normalised quaternion and its norm, or `None` when it is zero or not finite.
 pub fn normalize(q: [f32; 4]) -> Option<([f32; 4], f32)> {

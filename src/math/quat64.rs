@@ -84,20 +84,7 @@ pub fn to_rotmat(q: Q) -> M3 {
 /// VJP of [`to_rotmat`] (the formula's polynomial, unit q assumed): `dL/dq` from `dL/dR`.
 #[inline]
 pub fn to_rotmat_vjp(q: Q, g: &M3) -> Q {
-    let [w, x, y, z] = q;
-    let v = |i: usize, j: usize| g[i][j];
-    [
-        2.0 * (x * (v(2, 1) - v(1, 2)) + y * (v(0, 2) - v(2, 0)) + z * (v(1, 0) - v(0, 1))),
-        2.0 * (-2.0 * x * (v(1, 1) + v(2, 2))
-            + y * (v(1, 0) + v(0, 1))
-            + z * (v(2, 0) + v(0, 2))
-            + w * (v(2, 1) - v(1, 2))),
-        2.0 * (x * (v(1, 0) + v(0, 1)) - 2.0 * y * (v(0, 0) + v(2, 2))
-            + z * (v(2, 1) + v(1, 2))
-            + w * (v(0, 2) - v(2, 0))),
-        2.0 * (x * (v(2, 0) + v(0, 2)) + y * (v(2, 1) + v(1, 2)) - 2.0 * z * (v(0, 0) + v(1, 1))
-            + w * (v(1, 0) - v(0, 1))),
-    ]
+    super::quat::rotmat_vjp!(q, |i: usize, j: usize| g[i][j])
 }
 
 /// Quaternion of a rotation matrix, as pytorch3d's `matrix_to_quaternion` (v0.7.6+): the

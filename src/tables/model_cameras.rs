@@ -12,6 +12,7 @@ use std::sync::Arc;
 use arrow::array::{ArrayRef, FixedSizeListArray, Float64Array, UInt32Array};
 use arrow::datatypes::{DataType, Float64Type, Schema, SchemaRef, UInt32Type};
 
+use super::cameras::Camera;
 use super::io::{Columns, Table, TableReader, batch, field, fixed_list, write_table};
 use super::{Error, Provenance, Result, validate};
 
@@ -162,6 +163,21 @@ impl Similarity {
         std::array::from_fn(|i| {
             self.scale * (r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2]) + self.translation[i]
         })
+    }
+
+    /// The model camera of scene camera `c`: its intrinsics, and its pose mapped by
+    /// [`Similarity::w2c_to_model`].
+    pub fn camera_to_model(&self, c: &Camera) -> ModelCamera {
+        ModelCamera {
+            frame: c.frame,
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            width: c.width,
+            height: c.height,
+            w2c: self.w2c_to_model(&c.w2c),
+        }
     }
 
     /// The world-to-camera matrix (row-major) in the model frame of a scene camera `w2c`:

@@ -10,11 +10,11 @@ use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{BooleanArray, Float32Array, RecordBatch, UInt32Array};
-use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef};
+use arrow::datatypes::{DataType, Float32Type, SchemaRef};
 
-use super::io::{Columns, FrameWriter, Table, batch, field};
-use super::tracks_3d::TrackFrames;
-use super::{Provenance, Result, validate};
+use super::io::{Columns, Table, batch, field};
+use super::tracks_3d::{TrackReader, TrackTable, TrackWriter, track_schema};
+use super::{Result, validate};
 
 /// Marker type of the `tracks_2d` table.
 pub struct Tracks2dTable;
@@ -23,13 +23,7 @@ impl Table for Tracks2dTable {
     const NAME: &'static str = "tracks_2d";
     const VERSION: u32 = 1;
     fn schema() -> SchemaRef {
-        Arc::new(Schema::new(vec![
-            field("frame", DataType::UInt32),
-            field("track_id", DataType::UInt32),
-            field("x", DataType::Float32),
-            field("y", DataType::Float32),
-            field("visible", DataType::Boolean),
-        ]))
+        track_schema(field("visible", DataType::Boolean))
     }
 }
 
@@ -42,60 +36,23 @@ pub struct Tracks2dFrame {
     pub visible: Vec<bool>,
 }
 
-/// The row group of frame `frame`.
-pub fn frame_batch(frame: u32, f: &Tracks2dFrame) -> RecordBatch {
-    let m = f.xy.len();
-    batch::<Tracks2dTable>(vec![
-        Arc::new(UInt32Array::from(vec![frame; m])),
-        Arc::new(UInt32Array::from_iter_values(0..m as u32)),
-        Arc::new(Float32Array::from_iter_values(f.xy.iter().map(|p| p[0]))),
-        Arc::new(Float32Array::from_iter_values(f.xy.iter().map(|p| p[1]))),
-        Arc::new(BooleanArray::from(f.visible.clone())),
-    ])
-}
+impl TrackTable for Tracks2dTable {
+    type Frame = Tracks2dFrame;
+    type Read = Tracks2dFrame;
 
-/// Streams frames into a `tracks_2d` file, atomically on finish.
-pub struct Tracks2dWriter(FrameWriter);
-
-impl Tracks2dWriter {
-    /// Start writing `num_tracks` tracks to `path`.
-    pub fn create(path: &Path, num_tracks: usize, provenance: &Provenance) -> Result<Self> {
-        Ok(Tracks2dWriter(FrameWriter::create::<Tracks2dTable>(path, num_tracks, provenance)?))
-    }
-
-    /// Append the next frame (frames come as 0, 1, 2, ...).
-    pub fn write(&mut self, f: &Tracks2dFrame) -> Result<()> {
+    fn frame_batch(frame: u32, f: &Tracks2dFrame) -> RecordBatch {
         assert_eq!(f.visible.len(), f.xy.len(), "one visibility per track");
-        self.0.write(&frame_batch(self.0.next_frame(), f))
+        let m = f.xy.len();
+        batch::<Tracks2dTable>(vec![
+            Arc::new(UInt32Array::from(vec![frame; m])),
+            Arc::new(UInt32Array::from_iter_values(0..m as u32)),
+            Arc::new(Float32Array::from_iter_values(f.xy.iter().map(|p| p[0]))),
+            Arc::new(Float32Array::from_iter_values(f.xy.iter().map(|p| p[1]))),
+            Arc::new(BooleanArray::from(f.visible.clone())),
+        ])
     }
 
-    /// Close and rename into place.
-    pub fn finish(self) -> Result<()> {
-        self.0.finish()
-    }
-}
-
-/// Reads a `tracks_2d` file frame by frame, validating each frame.
-pub struct Tracks2dReader(TrackFrames);
-
-impl std::ops::Deref for Tracks2dReader {
-    type Target = TrackFrames;
-    fn deref(&self) -> &TrackFrames {
-        &self.0
-    }
-}
-
-impl Tracks2dReader {
-    /// Open `path`; every frame must hold the same number of tracks.
-    pub fn open(path: &Path) -> Result<Self> {
-        Ok(Tracks2dReader(TrackFrames::open::<Tracks2dTable>(path)?))
-    }
-
-    /// The tracks of frame `t`, validated.
-    pub fn frame(&self, t: usize) -> Result<Tracks2dFrame> {
-        let (b, row0) = self.0.group(t)?;
-        let path = self.0.path();
-        let c = Columns::new(path, &b);
+    fn read_frame(path: &Path, c: &Columns, row0: u64) -> Result<Tracks2dFrame> {
         let x = c.values::<Float32Type>("x")?;
         let y = c.values::<Float32Type>("y")?;
         validate::finite(path, "x", row0, x)?;
@@ -107,9 +64,16 @@ impl Tracks2dReader {
     }
 }
 
+/// Streams [`Tracks2dFrame`]s into a `tracks_2d` file, atomically on finish.
+pub type Tracks2dWriter = TrackWriter<Tracks2dTable>;
+
+/// Reads a `tracks_2d` file frame by frame ([`Tracks2dFrame`]s), validating each frame.
+pub type Tracks2dReader = TrackReader<Tracks2dTable>;
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::tables::Provenance;
 
     #[test]
     fn round_trip_and_row_count_check() {
@@ -130,7 +94,7 @@ mod tests {
         super::super::io::write_table::<Tracks2dTable>(
             &p,
             &Provenance::default(),
-            [frame_batch(0, &f0), frame_batch(1, &short)],
+            [Tracks2dTable::frame_batch(0, &f0), Tracks2dTable::frame_batch(1, &short)],
         )
         .unwrap();
         let err = Tracks2dReader::open(&p).err().unwrap().to_string();

@@ -4,11 +4,12 @@
 //! 0..M-1 in order, so readers stream frame by frame. Written by `synth` (points sampled
 //! uniformly by area on the animated mesh, world units of the scene's cameras).
 
+use std::marker::PhantomData;
 use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{ArrayRef, Float32Array, RecordBatch, UInt32Array};
-use arrow::datatypes::{DataType, Float32Type, Schema, SchemaRef};
+use arrow::datatypes::{DataType, Field, Float32Type, Schema, SchemaRef};
 
 use super::io::{Columns, FrameWriter, Table, TableReader, batch, field, read_frame_group};
 use super::{Provenance, Result, validate};
@@ -20,43 +21,83 @@ impl Table for Tracks3dTable {
     const NAME: &'static str = "tracks_3d";
     const VERSION: u32 = 1;
     fn schema() -> SchemaRef {
-        Arc::new(Schema::new(vec![
-            field("frame", DataType::UInt32),
-            field("track_id", DataType::UInt32),
-            field("x", DataType::Float32),
-            field("y", DataType::Float32),
-            field("z", DataType::Float32),
-        ]))
+        track_schema(field("z", DataType::Float32))
     }
 }
 
-/// The row group of frame `frame`: positions `[M, 3]` of tracks 0..M-1.
-pub fn frame_batch(frame: u32, positions: &[[f32; 3]]) -> RecordBatch {
-    let m = positions.len();
-    let col = |k: usize| -> ArrayRef {
-        Arc::new(Float32Array::from_iter_values(positions.iter().map(|p| p[k])))
-    };
-    batch::<Tracks3dTable>(vec![
-        Arc::new(UInt32Array::from(vec![frame; m])),
-        Arc::new(UInt32Array::from_iter_values(0..m as u32)),
-        col(0),
-        col(1),
-        col(2),
-    ])
+impl TrackTable for Tracks3dTable {
+    type Frame = [[f32; 3]];
+    type Read = Vec<[f32; 3]>;
+
+    /// Positions `[M, 3]` of tracks 0..M-1.
+    fn frame_batch(frame: u32, positions: &[[f32; 3]]) -> RecordBatch {
+        let m = positions.len();
+        let col = |k: usize| -> ArrayRef {
+            Arc::new(Float32Array::from_iter_values(positions.iter().map(|p| p[k])))
+        };
+        batch::<Tracks3dTable>(vec![
+            Arc::new(UInt32Array::from(vec![frame; m])),
+            Arc::new(UInt32Array::from_iter_values(0..m as u32)),
+            col(0),
+            col(1),
+            col(2),
+        ])
+    }
+
+    /// Positions `[M, 3]`, finite.
+    fn read_frame(path: &Path, c: &Columns, row0: u64) -> Result<Vec<[f32; 3]>> {
+        let mut cols = Vec::with_capacity(3);
+        for name in ["x", "y", "z"] {
+            let v = c.values::<Float32Type>(name)?;
+            validate::finite(path, name, row0, v)?;
+            cols.push(v);
+        }
+        Ok((0..cols[0].len()).map(|i| [cols[0][i], cols[1][i], cols[2][i]]).collect())
+    }
 }
 
-/// Streams frames into a `tracks_3d` file, atomically on finish.
-pub struct Tracks3dWriter(FrameWriter);
+/// Streams frames (positions `[M, 3]`) into a `tracks_3d` file, atomically on finish.
+pub type Tracks3dWriter = TrackWriter<Tracks3dTable>;
 
-impl Tracks3dWriter {
+/// Reads a `tracks_3d` file frame by frame (positions `[M, 3]`), validating each frame.
+pub type Tracks3dReader = TrackReader<Tracks3dTable>;
+
+/// A table of M tracks in every frame, one row group per frame (`tracks_2d`, `tracks_3d`):
+/// how a frame becomes a row group and back.
+pub trait TrackTable: Table {
+    /// A frame as written.
+    type Frame: ?Sized;
+    /// A frame as read.
+    type Read;
+    /// The row group of frame `frame` (`track_id` 0..M-1 in order).
+    fn frame_batch(frame: u32, f: &Self::Frame) -> RecordBatch;
+    /// The frame held by columns `c` of `path` (first row at file row `row0`), validated.
+    fn read_frame(path: &Path, c: &Columns, row0: u64) -> Result<Self::Read>;
+}
+
+/// The columns of a track table: `frame`, `track_id`, `x`, `y` (f32) and the table's `last`.
+pub(super) fn track_schema(last: Field) -> SchemaRef {
+    Arc::new(Schema::new(vec![
+        field("frame", DataType::UInt32),
+        field("track_id", DataType::UInt32),
+        field("x", DataType::Float32),
+        field("y", DataType::Float32),
+        last,
+    ]))
+}
+
+/// Streams frames into a track table's file, atomically on finish.
+pub struct TrackWriter<T>(FrameWriter, PhantomData<T>);
+
+impl<T: TrackTable> TrackWriter<T> {
     /// Start writing `num_tracks` tracks to `path`.
     pub fn create(path: &Path, num_tracks: usize, provenance: &Provenance) -> Result<Self> {
-        Ok(Tracks3dWriter(FrameWriter::create::<Tracks3dTable>(path, num_tracks, provenance)?))
+        Ok(TrackWriter(FrameWriter::create::<T>(path, num_tracks, provenance)?, PhantomData))
     }
 
-    /// Append the next frame's positions `[M, 3]` (frames come as 0, 1, 2, ...).
-    pub fn write(&mut self, positions: &[[f32; 3]]) -> Result<()> {
-        self.0.write(&frame_batch(self.0.next_frame(), positions))
+    /// Append the next frame (frames come as 0, 1, 2, ...).
+    pub fn write(&mut self, f: &T::Frame) -> Result<()> {
+        self.0.write(&T::frame_batch(self.0.next_frame(), f))
     }
 
     /// Close and rename into place.
@@ -65,40 +106,33 @@ impl Tracks3dWriter {
     }
 }
 
-/// Reads a `tracks_3d` file frame by frame, validating each frame.
-pub struct Tracks3dReader(TrackFrames);
+/// Reads a track table's file frame by frame, validating each frame; dereferences to
+/// [`TrackFrames`] for the frame and track counts.
+pub struct TrackReader<T>(TrackFrames, PhantomData<T>);
 
-impl std::ops::Deref for Tracks3dReader {
+impl<T> std::ops::Deref for TrackReader<T> {
     type Target = TrackFrames;
     fn deref(&self) -> &TrackFrames {
         &self.0
     }
 }
 
-impl Tracks3dReader {
+impl<T: TrackTable> TrackReader<T> {
     /// Open `path`; every frame must hold the same number of tracks.
     pub fn open(path: &Path) -> Result<Self> {
-        Ok(Tracks3dReader(TrackFrames::open::<Tracks3dTable>(path)?))
+        Ok(TrackReader(TrackFrames::open::<T>(path)?, PhantomData))
     }
 
-    /// Positions `[M, 3]` at frame `t`, validated.
-    pub fn frame(&self, t: usize) -> Result<Vec<[f32; 3]>> {
+    /// The tracks of frame `t`, validated.
+    pub fn frame(&self, t: usize) -> Result<T::Read> {
         let (b, row0) = self.0.group(t)?;
         let path = self.0.path();
-        let c = Columns::new(path, &b);
-        let mut cols = Vec::with_capacity(3);
-        for name in ["x", "y", "z"] {
-            let v = c.values::<Float32Type>(name)?;
-            validate::finite(path, name, row0, v)?;
-            cols.push(v);
-        }
-        Ok((0..b.num_rows()).map(|i| [cols[0][i], cols[1][i], cols[2][i]]).collect())
+        T::read_frame(path, &Columns::new(path, &b), row0)
     }
 }
 
 /// The frame-by-frame reading shared by the track tables: M rows in every frame, the
-/// frame column and track ids 0..M-1 checked on each read. The track readers dereference
-/// to it for their frame and track counts.
+/// frame column and track ids 0..M-1 checked on each read.
 pub struct TrackFrames {
     inner: TableReader,
     num_tracks: usize,
@@ -158,7 +192,7 @@ mod tests {
         assert_eq!((r.num_frames(), r.num_tracks()), (2, 2));
         assert_eq!(r.frame(1).unwrap(), frames[1]);
 
-        let mut b = frame_batch(0, &frames[0]);
+        let mut b = Tracks3dTable::frame_batch(0, &frames[0]);
         let cols: Vec<ArrayRef> = b
             .columns()
             .iter()

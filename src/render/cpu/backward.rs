@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use super::blend::{SpanEval, alpha_vjp, for_each_row, span_eval};
+use super::blend::{SpanEval, alpha_vjp, for_each_row, span_alpha};
 use super::forward::{RasterInputs, TileList};
 use super::project::Splat2dGrad;
 
@@ -69,7 +69,7 @@ fn backward_tile(
         for_each_row(g, x0, y0, x1, y1, |y, xa, xb| {
             let py = y as f32 + 0.5;
             let row = (y - y0) as usize * tw;
-            span_eval(g, xa, (xb - xa) as usize, y, inp.alpha_max, inp.cutoff, &mut span);
+            span_alpha(g, xa, (xb - xa) as usize, y, inp.alpha_max, inp.cutoff, &mut span);
             for x in xa..xb {
                 let k = row + (x - x0) as usize;
                 let i = (x - xa) as usize;
@@ -155,7 +155,8 @@ mod tests {
     use super::*;
     use crate::render::Cutoff;
     use crate::render::cpu::forward::rasterize_fwd;
-    use crate::render::cpu::isect::{TileGrid, isect_tiles, tile_ranges};
+    use crate::render::cpu::forward::tests::with_inputs;
+    use crate::render::cpu::isect::TileGrid;
     use crate::render::cpu::project::Splat2d;
 
     fn splat(x: f32, y: f32, conic: [f32; 3], opacity: f32, depth: f32) -> Splat2d {
@@ -190,37 +191,15 @@ mod tests {
         let v_ch: Vec<f32> = (0..w * h * 3).map(|i| ((i * 7919 % 13) as f32 - 6.0) * 0.1).collect();
         let v_a: Vec<f32> = (0..w * h).map(|i| ((i * 104729 % 7) as f32 - 3.0) * 0.1).collect();
         let loss = |splats: &[Splat2d], channels: &[f32]| -> f64 {
-            let isect = isect_tiles(&grid, splats);
-            let offsets = tile_ranges(&isect.keys, grid.num_tiles());
-            let inp = RasterInputs {
-                grid,
-                splats,
-                channels,
-                num_channels: 3,
-                isect: &isect,
-                offsets: &offsets,
-                alpha_max: 0.99,
-                cutoff: Cutoff::Smooth,
-            };
-            let f = rasterize_fwd(&inp);
+            let f = with_inputs(grid, splats, channels, 3, Cutoff::Smooth, rasterize_fwd);
             let a: f64 =
                 f.final_t.iter().zip(&v_a).map(|(t, v)| (1.0 - *t as f64) * *v as f64).sum();
             a + f.channels.iter().zip(&v_ch).map(|(c, v)| *c as f64 * *v as f64).sum::<f64>()
         };
-        let isect = isect_tiles(&grid, &splats);
-        let offsets = tile_ranges(&isect.keys, grid.num_tiles());
-        let inp = RasterInputs {
-            grid,
-            splats: &splats,
-            channels: &channels,
-            num_channels: 3,
-            isect: &isect,
-            offsets: &offsets,
-            alpha_max: 0.99,
-            cutoff: Cutoff::Smooth,
-        };
-        let f = rasterize_fwd(&inp);
-        let g = rasterize_bwd(&inp, &f.final_t, &f.last_contributor, &v_ch, &v_a);
+        let g = with_inputs(grid, &splats, &channels, 3, Cutoff::Smooth, |inp| {
+            let f = rasterize_fwd(inp);
+            rasterize_bwd(inp, &f.final_t, &f.last_contributor, &v_ch, &v_a)
+        });
         let h_step = 1e-3f32;
         let mut failures = Vec::new();
         for gi in 0..3 {

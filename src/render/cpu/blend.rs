@@ -90,10 +90,26 @@ pub fn eval_alpha(
     (alpha > 0.0).then_some(AlphaEval { alpha, raw, vis, dx, dy })
 }
 
+/// Where [`span_alpha`] puts lane `i`'s alpha, `o · exp(-σ)` and `exp(-σ)`: an array of
+/// alphas keeps the alphas only (the forward pass; the rest is never computed once
+/// inlined), a [`SpanEval`] keeps all three (the backward pass).
+pub trait SpanOut {
+    /// Store lane `i < SPAN`.
+    fn set(&mut self, i: usize, alpha: f32, raw: f32, vis: f32);
+}
+
+impl SpanOut for [f32; SPAN] {
+    #[inline(always)]
+    fn set(&mut self, i: usize, alpha: f32, _raw: f32, _vis: f32) {
+        self[i] = alpha;
+    }
+}
+
 /// Alphas of `g` at the pixel centres `(xa + i + 0.5, y + 0.5)` for the lanes `i < n`
-/// (`n <= SPAN`), 0 where the pair does not contribute; lanes `i >= n` hold unspecified
-/// values. Branch-free groups of 4 lanes (vectorised by the compiler) up to `n`; lane `i`
-/// has exactly the bits of [`eval_alpha`] at that pixel.
+/// (`n <= SPAN`), 0 where the pair does not contribute, stored in `out` (with the
+/// intermediates it keeps); lanes `i >= n` hold unspecified values. Branch-free groups of
+/// 4 lanes (vectorised by the compiler) up to `n`; lane `i` has exactly the bits of
+/// [`eval_alpha`] at that pixel.
 #[inline]
 pub fn span_alpha(
     g: &Splat2d,
@@ -102,20 +118,21 @@ pub fn span_alpha(
     y: u32,
     alpha_max: f32,
     cutoff: Cutoff,
-    out: &mut [f32; SPAN],
+    out: &mut impl SpanOut,
 ) {
     let dy = g.mean2d[1] - (y as f32 + 0.5);
     let x0 = xa as f32;
-    for (q, group) in out.chunks_exact_mut(4).enumerate().take(n.div_ceil(4)) {
+    for q in 0..n.div_ceil(4).min(SPAN / 4) {
         let xq = x0 + (4 * q) as f32;
-        for (l, o) in group.iter_mut().enumerate() {
+        for l in 0..4 {
             let dx = g.mean2d[0] - ((xq + l as f32) + 0.5);
-            *o = alpha_parts(g, dx, dy, alpha_max, cutoff).0;
+            let (alpha, raw, vis) = alpha_parts(g, dx, dy, alpha_max, cutoff);
+            out.set(4 * q + l, alpha, raw, vis);
         }
     }
 }
 
-/// Alpha and intermediates of one row span, lane `i` = pixel `xa + i` (see [`span_eval`]).
+/// Alpha and intermediates of one row span, lane `i` = pixel `xa + i` (see [`span_alpha`]).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct SpanEval {
     /// Blending alphas, 0 where the pair does not contribute.
@@ -124,6 +141,15 @@ pub struct SpanEval {
     pub raw: [f32; SPAN],
     /// `exp(-σ)`.
     pub vis: [f32; SPAN],
+}
+
+impl SpanOut for SpanEval {
+    #[inline(always)]
+    fn set(&mut self, i: usize, alpha: f32, raw: f32, vis: f32) {
+        self.alpha[i] = alpha;
+        self.raw[i] = raw;
+        self.vis[i] = vis;
+    }
 }
 
 impl SpanEval {
@@ -137,31 +163,6 @@ impl SpanEval {
             vis: self.vis[i],
             dx: g.mean2d[0] - px,
             dy: g.mean2d[1] - py,
-        }
-    }
-}
-
-/// [`span_alpha`] that also keeps `raw` and `vis` for the backward pass; the same bits.
-#[inline]
-pub fn span_eval(
-    g: &Splat2d,
-    xa: u32,
-    n: usize,
-    y: u32,
-    alpha_max: f32,
-    cutoff: Cutoff,
-    out: &mut SpanEval,
-) {
-    let dy = g.mean2d[1] - (y as f32 + 0.5);
-    let x0 = xa as f32;
-    for q in 0..n.div_ceil(4) {
-        let xq = x0 + (4 * q) as f32;
-        for l in 0..4 {
-            let dx = g.mean2d[0] - ((xq + l as f32) + 0.5);
-            let (alpha, raw, vis) = alpha_parts(g, dx, dy, alpha_max, cutoff);
-            out.alpha[4 * q + l] = alpha;
-            out.raw[4 * q + l] = raw;
-            out.vis[4 * q + l] = vis;
         }
     }
 }

@@ -345,10 +345,34 @@ pub fn failing_pairs_weighted(
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::render::cpu::blend::eval_alpha;
     use crate::render::cpu::isect::{isect_tiles, tile_ranges};
+
+    /// Bins `splats` into `grid`'s tiles and hands the rasterizers' inputs (α clamped at
+    /// 0.99) to `f`.
+    pub(in crate::render::cpu) fn with_inputs<R>(
+        grid: TileGrid,
+        splats: &[Splat2d],
+        channels: &[f32],
+        num_channels: usize,
+        cutoff: Cutoff,
+        f: impl FnOnce(&RasterInputs) -> R,
+    ) -> R {
+        let isect = isect_tiles(&grid, splats);
+        let offsets = tile_ranges(&isect.keys, grid.num_tiles());
+        f(&RasterInputs {
+            grid,
+            splats,
+            channels,
+            num_channels,
+            isect: &isect,
+            offsets: &offsets,
+            alpha_max: 0.99,
+            cutoff,
+        })
+    }
 
     fn splat(x: f32, y: f32, var: f32, opacity: f32, depth: f32) -> Splat2d {
         let power = (255.0 * opacity).ln();
@@ -374,19 +398,7 @@ mod tests {
             splat(30.0, 5.0, 8.0, 0.99, 3.0),
         ];
         let channels = vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
-        let isect = isect_tiles(&grid, &splats);
-        let offsets = tile_ranges(&isect.keys, grid.num_tiles());
-        let inp = RasterInputs {
-            grid,
-            splats: &splats,
-            channels: &channels,
-            num_channels: 3,
-            isect: &isect,
-            offsets: &offsets,
-            alpha_max: 0.99,
-            cutoff: Cutoff::Hard,
-        };
-        let out = rasterize_fwd(&inp);
+        let out = with_inputs(grid, &splats, &channels, 3, Cutoff::Hard, rasterize_fwd);
         let order = [1usize, 0, 2]; // by depth
         for y in 0..21 {
             for x in 0..37 {
@@ -425,19 +437,7 @@ mod tests {
         let splats: Vec<Splat2d> =
             (0..6).map(|i| splat(8.0, 8.0, 100.0, 1.0, 1.0 + i as f32)).collect();
         let channels = vec![1.0; 6];
-        let isect = isect_tiles(&grid, &splats);
-        let offsets = tile_ranges(&isect.keys, grid.num_tiles());
-        let inp = RasterInputs {
-            grid,
-            splats: &splats,
-            channels: &channels,
-            num_channels: 1,
-            isect: &isect,
-            offsets: &offsets,
-            alpha_max: 0.99,
-            cutoff: Cutoff::Hard,
-        };
-        let out = rasterize_fwd(&inp);
+        let out = with_inputs(grid, &splats, &channels, 1, Cutoff::Hard, rasterize_fwd);
         // α = 0.99 at the centre: T = 1e-2 after one, 1e-4 after two → the second is skipped.
         let i = 8 * 16 + 8;
         assert_eq!(out.last_contributor[i], 1);

@@ -66,6 +66,19 @@ impl CloudParams {
         }
         Ok(())
     }
+
+    /// What the table's rows were measured on: `WxH, depth complexity D, K threads,
+    /// median of R`.
+    pub fn conditions(&self) -> String {
+        format!(
+            "{}x{}, depth complexity {}, {} threads, median of {}",
+            self.width,
+            self.height,
+            self.depth_complexity,
+            rayon::current_num_threads(),
+            self.repeats
+        )
+    }
 }
 
 /// Process CPU time (user + system, all threads) in ms from `/proc/self/stat`, assuming

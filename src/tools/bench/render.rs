@@ -31,15 +31,7 @@ pub fn run(p: &BenchRenderParams, ctx: &crate::context::Context) -> anyhow::Resu
     let cam = camera(p.width, p.height);
     let settings = RenderSettings::default();
     let (w, h) = (p.width as usize, p.height as usize);
-    println!(
-        "{} rasterizer, {}x{}, depth complexity {}, {} threads, median of {}",
-        r.tag(),
-        p.width,
-        p.height,
-        p.depth_complexity,
-        rayon::current_num_threads(),
-        p.repeats
-    );
+    println!("{} rasterizer, {}", r.tag(), p.conditions());
     println!();
     println!(
         "| N | M (tile pairs) | blended pairs | forward ms | fwd+bwd ms | forward CPU ms \

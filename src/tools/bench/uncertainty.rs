@@ -155,16 +155,7 @@ pub fn run(p: &BenchUncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
     p.check(ctx)?;
     let s = UncertaintySettings::defaults(profile);
     let settings = RenderSettings::default();
-    println!(
-        "uncertainty frame work, profile {:?}, synthetic {}x{} at depth complexity {}, {} \
-         threads, median of {} per frame",
-        profile,
-        p.width,
-        p.height,
-        p.depth_complexity,
-        rayon::current_num_threads(),
-        p.repeats
-    );
+    println!("uncertainty frame work, profile {profile:?}, synthetic {} per frame", p.conditions());
     println!();
     println!(
         "| scene | N | failing pixels | render ms | frame ms | render CPU ms | frame CPU ms |"
