@@ -1,7 +1,10 @@
 //! The recipe's non-image terms, rebuilt whenever density control changes the Gaussians:
 //! - vanilla: the base models' motion locality (paper App. A.2) among all dynamic Gaussians,
-//!   kNN isometry + rigidity (edges and rest lengths at frame 0, weights 1/k) plus velocity
-//!   and acceleration, λ_iso = λ_rigid = 1, λ_vel = λ_acc = 0.01, App. A.2's forms;
+//!   kNN isometry + rigidity (edges and rest lengths at frame 0) plus velocity and
+//!   acceleration, λ_iso = λ_rigid = 1, λ_vel = λ_acc = 0.01, App. A.2's forms, each a mean
+//!   over its terms (edges × frames, Gaussians × frames) as the base models (MoSca, SoM)
+//!   average theirs. App. A.2's sums over every Gaussian and frame outweigh the per-pixel mean
+//!   of L_rgb by about 10⁴, so positions would follow the smoothness terms, not the images;
 //! - usplat4d: [`GraphObjective`] (L_key + L_non-key) on the graph of the trained Gaussians.
 //!   Its p° and u of a Gaussian are those of the input Gaussian it descends from
 //!   ([`TrainState::origin`]); a new Gaussian is a non-key with its origin's t̂ and edges.
@@ -51,7 +54,12 @@ impl KnnMotion {
         let nodes: Vec<u32> =
             (0..state.n() as u32).filter(|&i| state.dynamic[i as usize]).collect();
         let p0: Vec<[f32; 3]> = nodes.iter().map(|&i| state.positions(0)[i as usize]).collect();
-        let (src, dst, w, rest) = motion::knn_edges(&p0, k);
+        Self::from_positions(nodes, &p0, k)
+    }
+
+    /// kNN edges among `nodes`, whose frame-0 positions are `p0`.
+    fn from_positions(nodes: Vec<u32>, p0: &[[f32; 3]], k: usize) -> Self {
+        let (src, dst, w, rest) = motion::knn_edges(p0, k);
         // stored as f32 in checkpoints: round now so a resumed run sees the same values
         let r32 = |v: Vec<f64>| v.into_iter().map(|x| x as f32 as f64).collect();
         KnnMotion { nodes, src, dst, w: r32(w), rest: r32(rest) }
@@ -91,15 +99,19 @@ impl KnnMotion {
             return Vec::new();
         }
         let es = EdgeSet { src: &self.src, dst: &self.dst, w: &self.w };
-        let norm = 1.0 / self.src.len().max(1) as f64;
+        let (nt, e) = (poses.frames, self.src.len());
+        let per = |terms: usize| 1.0 / terms.max(1) as f64;
+        let (iso_norm, rigid_norm) = (per(e * nt), per(e * nt.saturating_sub(1)));
+        let (vel_norm, acc_norm) =
+            motion::smoothness_norms(MotionForm::Release, nt, self.nodes.len());
         let paper = MotionForm::Paper;
         let [iso, rigid, vel, acc] =
             motion::stream_frames(poses, &self.nodes, 2, grads, |tr, g| {
                 [
-                    motion::isometry(tr, es, &self.rest, norm, 1.0, g, None),
-                    motion::rigidity(tr, es, 1, norm, 1.0, g, None),
-                    motion::velocity(tr, paper, 1.0, 0.01, g),
-                    motion::acceleration(tr, paper, 1.0, 0.01, g),
+                    motion::isometry(tr, es, &self.rest, iso_norm, 1.0, g, None),
+                    motion::rigidity(tr, es, 1, rigid_norm, 1.0, g, None),
+                    motion::velocity(tr, paper, vel_norm, 0.01, g),
+                    motion::acceleration(tr, paper, acc_norm, 0.01, g),
                 ]
             });
         vec![
@@ -180,4 +192,39 @@ pub fn trained_graph(st: &TrainState, keys: &KeyNodes, edges: &Edges) -> (KeyNod
         }
     }
     (out, e_out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every Gaussian translating by `v` per frame: the rigid terms vanish and the velocity
+    /// term is 0.01 ‖v‖₁ whatever the number of frames and Gaussians (a mean, not a sum).
+    #[test]
+    fn vanilla_terms_are_means_over_gaussians_and_frames() {
+        let v = [0.01f32, -0.02, 0.005];
+        let velocity = |frames: usize, n: usize| {
+            let mut rng = crate::util::rng::Rng::new(3);
+            let p0: Vec<[f32; 3]> =
+                (0..n).map(|_| [0; 3].map(|_| rng.uniform() as f32)).collect();
+            let mut poses = Poses::identity(frames, n);
+            for t in 0..frames {
+                for (i, p) in p0.iter().enumerate() {
+                    let j = poses.idx(t, i);
+                    poses.position[j] = [0, 1, 2].map(|c| p[c] + t as f32 * v[c]);
+                }
+            }
+            let knn = KnnMotion::from_positions((0..n as u32).collect(), &p0, 4);
+            let terms = knn.evaluate(&poses, &mut PoseGrads::zeros(frames, n));
+            let get = |name: &str| terms.iter().find(|(k, _)| *k == name).unwrap().1;
+            assert!(get("knn_isometry").abs() < 1e-6 && get("knn_rigidity").abs() < 1e-6);
+            assert!(get("acceleration").abs() < 1e-6, "{terms:?}");
+            get("velocity")
+        };
+        let expected = 0.01 * v.iter().map(|x| x.abs() as f64).sum::<f64>();
+        for (frames, n) in [(5, 20), (24, 20), (24, 200)] {
+            let got = velocity(frames, n);
+            assert!((got - expected).abs() < 1e-8, "T={frames} N={n}: {got} vs {expected}");
+        }
+    }
 }
