@@ -49,16 +49,7 @@ fn moved_model(dir: &Dir, sim: &Similarity) {
     let cams: Vec<ModelCamera> = scene
         .train_by_frame()
         .iter()
-        .map(|c| ModelCamera {
-            frame: c.frame,
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            width: c.width,
-            height: c.height,
-            w2c: sim.w2c_to_model(&c.w2c),
-        })
+        .map(|c| sim.camera_to_model(c))
         .collect();
     Model::save_cameras(&out, &cams, sim, &Provenance::default()).unwrap();
 }
