@@ -49,15 +49,15 @@ pub enum AnchorMetric {
     Euclidean,
 }
 
-/// How sums over (t, i) are reduced.
+/// How the graph objective's sums over frames and Gaussians (or edges) are reduced.
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
 )]
 #[serde(rename_all = "kebab-case")]
 pub enum Reduction {
-    /// Σ_t Σ_i, as the paper's formulas are written.
+    /// Σ_t Σ_i, as the paper's formulas are written (edge terms: 1/(k|V|) Σ_t Σ_e).
     Sum,
-    /// The mean over the terms (the release's `mean`).
+    /// The mean over the terms (the release's `mean`, the base models' normalisation).
     Mean,
 }
 
@@ -70,7 +70,8 @@ pub struct GraphSettings {
     pub r_xyz: [f64; 3],
     /// Release confidence mask: u < 1/contrib_threshold.
     pub contrib_threshold: f64,
-    /// Reduction of the anchor and DQB terms.
+    /// Reduction of the anchor and DQB terms, and of the paper form's key edge and
+    /// smoothness terms over frames and Gaussians (the release form is always a mean).
     pub reduction: Reduction,
     /// Weight of the key anchor (paper 1, release 0: prep only).
     pub key_anchor: f64,
@@ -548,7 +549,9 @@ impl GraphObjective {
         let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
         let [lv, la] = self.s.lambda_vel_acc;
         let form = self.s.motion;
-        let (nv, na) = motion::smoothness_norms(form, self.frames, all.len());
+        let mean = self.s.reduction == Reduction::Mean;
+        let norm_form = if mean { MotionForm::Release } else { form };
+        let (nv, na) = motion::smoothness_norms(norm_form, self.frames, all.len());
         motion::stream_frames(poses, &all, 2, grads, |tr, g| {
             [motion::velocity(tr, form, nv, lv, g), motion::acceleration(tr, form, na, la, g)]
         })
@@ -589,16 +592,21 @@ impl GraphObjective {
         match s.motion {
             MotionForm::Paper => {
                 let [li, lr, lo] = s.lambda_iso_rigid_rot;
+                // 1/(k|V|) per frame; summed over frames, or their mean.
+                let per = |d: usize| match s.reduction {
+                    Reduction::Sum => 1.0 / ne,
+                    Reduction::Mean => 1.0 / (ne * nt.saturating_sub(d).max(1) as f64),
+                };
                 let v =
-                    motion::isometry(&track, es, &rest, 1.0 / ne, km * li, &mut tg, Some(&mut ge));
+                    motion::isometry(&track, es, &rest, per(0), km * li, &mut tg, Some(&mut ge));
                 out.push(("key_isometry", km * li * v));
-                let v = motion::rigidity(&track, es, 1, 1.0 / ne, km * lr, &mut tg, Some(&mut ge));
+                let v = motion::rigidity(&track, es, 1, per(1), km * lr, &mut tg, Some(&mut ge));
                 out.push(("key_rigidity", km * lr * v));
                 let v = motion::relative_rotation(
                     &track,
                     es,
                     1,
-                    1.0 / ne,
+                    per(1),
                     km * lo,
                     &mut tg,
                     Some(&mut ge),

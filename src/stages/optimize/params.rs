@@ -123,8 +123,9 @@ crate::stage_params! {
         /// 15-17); `--no-loss-weighting` makes it euclidean.
         anchor_metric: AnchorMetric => AnchorMetric [check::choice]
             { paper "paper-literal", release "release", row "15", heading "Graph" },
-        /// Reduction of the anchor and DQB sums over (t, i) (sum: Σ_t Σ_i as Eqs. 9 and 11
-        /// are written; mean).
+        /// Reduction of the graph objective's sums over frames and Gaussians: the anchor and
+        /// DQB terms and App. A.2's key edge, velocity and acceleration terms (sum: Σ_t Σ_i as
+        /// Eqs. 9 and 11 are written; mean: as the release and the base models average).
         graph_reduction: Reduction => Reduction [check::choice]
             { paper "sum", release "mean", row "", heading "Graph" },
         /// Depth ratio r_z of U.
