@@ -15,6 +15,7 @@ pub mod params;
 pub mod poses;
 pub mod state;
 pub mod step;
+pub mod timing;
 pub mod train;
 
 pub use params::OptimizeParams;

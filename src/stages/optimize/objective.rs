@@ -95,11 +95,12 @@ impl KnnMotion {
         let paper = MotionForm::Paper;
         let [iso, rigid, vel, acc] =
             motion::stream_frames(poses, &self.nodes, 2, grads, |tr, g| {
+                let [vel, acc] = motion::smoothness(tr, paper, (1.0, 0.01), (1.0, 0.01), g);
                 [
                     motion::isometry(tr, es, &self.rest, norm, 1.0, g, None),
                     motion::rigidity(tr, es, 1, norm, 1.0, g, None),
-                    motion::velocity(tr, paper, 1.0, 0.01, g),
-                    motion::acceleration(tr, paper, 1.0, 0.01, g),
+                    vel,
+                    acc,
                 ]
             });
         vec![
