@@ -380,14 +380,9 @@ impl GraphObjective {
     /// The current key-key weights w_ij = |W_ij| / Σ_j |W_ij| `[E]`.
     fn key_weights(&self) -> Vec<f64> {
         let mut w = vec![0.0; self.ksrc.len()];
-        let mut e = 0;
-        while e < w.len() {
-            let s = e;
-            while e < w.len() && self.ksrc[e] == self.ksrc[s] {
-                e += 1;
-            }
-            let sum: f64 = self.w_raw[s..e].iter().map(|x| x.abs() as f64).sum();
-            for k in s..e {
+        for (_, run) in motion::by_source(&self.ksrc) {
+            let sum: f64 = self.w_raw[run.clone()].iter().map(|x| x.abs() as f64).sum();
+            for k in run {
                 w[k] = if sum > 0.0 { self.w_raw[k].abs() as f64 / sum } else { 0.0 };
             }
         }
@@ -651,16 +646,11 @@ impl GraphObjective {
         if s.motion == MotionForm::Paper {
             self.g_rest.fill(0.0);
         }
-        let mut e = 0;
-        while e < g_w.len() {
-            let st = e;
-            while e < g_w.len() && self.ksrc[e] == self.ksrc[st] {
-                e += 1;
-            }
-            let sum: f64 = self.w_raw[st..e].iter().map(|x| x.abs() as f64).sum();
+        for (_, run) in motion::by_source(&self.ksrc) {
+            let sum: f64 = self.w_raw[run.clone()].iter().map(|x| x.abs() as f64).sum();
             if sum > 0.0 {
-                let dot: f64 = (st..e).map(|k| g_w[k] * w_all[k]).sum();
-                for k in st..e {
+                let dot: f64 = run.clone().map(|k| g_w[k] * w_all[k]).sum();
+                for k in run {
                     let sg = if self.w_raw[k] >= 0.0 { 1.0 } else { -1.0 };
                     self.g_w_raw[k] += (sg * (g_w[k] - dot) / sum) as f32;
                 }
@@ -914,7 +904,10 @@ mod tests {
 
     fn total(obj: &mut GraphObjective, poses: &Poses) -> f64 {
         let mut g = PoseGrads::zeros(poses.frames, poses.n);
-        obj.evaluate(poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default()).iter().map(|x| x.1).sum()
+        obj.evaluate(poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default())
+            .iter()
+            .map(|x| x.1)
+            .sum()
     }
 
     #[test]

@@ -25,6 +25,7 @@
 use rayon::prelude::*;
 
 use super::poses::{PoseGrads, Poses};
+use super::sign;
 use crate::math::quat64::{self as q4, M3, Q, V3};
 
 /// Width of one gradient row: position (3), raw quaternion (4), unit quaternion (4).
@@ -359,6 +360,30 @@ struct Partial {
     g_rest: Vec<f64>,
 }
 
+impl Partial {
+    /// Zero, with per-edge gradients of `ne` weights when `want_e` (and of the rest
+    /// lengths when `rest` too).
+    fn new(want_e: bool, ne: usize, rest: bool) -> Self {
+        let zeros = |on: bool| if on { vec![0.0; ne] } else { Vec::new() };
+        Partial { value: 0.0, g_w: zeros(want_e), g_rest: zeros(want_e && rest) }
+    }
+}
+
+/// The runs of edges that share a source, `(source, its edges)` in edge order (edges
+/// grouped by source, as kNN lists and the key-key edges are).
+pub fn by_source(src: &[u32]) -> impl Iterator<Item = (usize, std::ops::Range<usize>)> + '_ {
+    let mut e = 0;
+    std::iter::from_fn(move || {
+        (e < src.len()).then(|| {
+            let first = e;
+            while e < src.len() && src[e] == src[first] {
+                e += 1;
+            }
+            (src[first] as usize, first..e)
+        })
+    })
+}
+
 fn reduce(parts: Vec<Partial>, g_edges: Option<&mut EdgeGrad>) -> f64 {
     let mut value = 0.0;
     let mut ge = g_edges;
@@ -408,23 +433,17 @@ pub fn rigidity(
     let want_e = g_edges.is_some();
     let ne = edges.len();
     let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
-        let mut part = Partial {
-            value: 0.0,
-            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
-            g_rest: Vec::new(),
-        };
+        let mut part = Partial::new(want_e, ne, false);
         for t in ts {
             let (t0, t1) = (t - delta, t);
-            let mut e = 0;
-            while e < ne {
-                let i = edges.src[e] as usize;
+            for (i, run) in by_source(edges.src) {
                 let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
                 let c = q4::mul(a, q4::conj(b));
                 let rm = q4::to_rotmat(c);
                 let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
                 let mut g_rm: M3 = [[0.0; 3]; 3];
                 let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
-                while e < ne && edges.src[e] as usize == i {
+                for e in run {
                     let j = edges.dst[e] as usize;
                     let d0 = sub(track.p[track.at(t0, j)], pi0);
                     let d1 = sub(track.p[track.at(t1, j)], pi1);
@@ -448,7 +467,6 @@ pub fn rigidity(
                             g_pi1[c] -= gd1[c];
                         }
                     }
-                    e += 1;
                 }
                 let g_c = q4::to_rotmat_vjp(c, &g_rm);
                 let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
@@ -479,23 +497,17 @@ pub fn relative_rotation(
     let want_e = g_edges.is_some();
     let ne = edges.len();
     let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
-        let mut part = Partial {
-            value: 0.0,
-            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
-            g_rest: Vec::new(),
-        };
+        let mut part = Partial::new(want_e, ne, false);
         for t in ts {
             let (t0, t1) = (t - delta, t);
             let rel = |k: usize| {
                 let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
                 (a, b, q4::mul(a, q4::conj(b)))
             };
-            let mut e = 0;
-            while e < ne {
-                let i = edges.src[e] as usize;
+            for (i, run) in by_source(edges.src) {
                 let (ai, bi, qi) = rel(i);
                 let mut g_qi = [0.0; 4];
-                while e < ne && edges.src[e] as usize == i {
+                for e in run {
                     let j = edges.dst[e] as usize;
                     let (aj, bj, qj) = rel(j);
                     let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
@@ -515,7 +527,6 @@ pub fn relative_rotation(
                             g_qi[c] -= gr[c];
                         }
                     }
-                    e += 1;
                 }
                 let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
                 add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
@@ -542,11 +553,7 @@ pub fn isometry(
     let want_e = g_edges.is_some();
     let ne = edges.len();
     let parts = frame_windows(g, track.frames, 0, track.first, |ts, base, rows| {
-        let mut part = Partial {
-            value: 0.0,
-            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
-            g_rest: if want_e { vec![0.0; ne] } else { Vec::new() },
-        };
+        let mut part = Partial::new(want_e, ne, true);
         for t in ts {
             for e in 0..ne {
                 let (i, j) = (edges.src[e] as usize, edges.dst[e] as usize);
@@ -555,13 +562,7 @@ pub fn isometry(
                 let r = len - rest[e];
                 let w = edges.w[e];
                 part.value += norm * w * r.abs();
-                let s = if r > 0.0 {
-                    1.0
-                } else if r < 0.0 {
-                    -1.0
-                } else {
-                    0.0
-                };
+                let s = sign(r);
                 if want_e {
                     part.g_w[e] += scale * norm * r.abs();
                     part.g_rest[e] -= scale * norm * w * s;
@@ -577,17 +578,6 @@ pub fn isometry(
         part
     });
     reduce(parts, g_edges)
-}
-
-#[inline]
-fn sign(x: f64) -> f64 {
-    if x > 0.0 {
-        1.0
-    } else if x < 0.0 {
-        -1.0
-    } else {
-        0.0
-    }
 }
 
 /// A unit quaternion standardised to w ≥ 0, and the sign applied.

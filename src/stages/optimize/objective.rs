@@ -122,12 +122,7 @@ pub fn build_graph(
 ) -> anyhow::Result<GraphObjective> {
     let (keys, edges) = trained_graph(state, &src.keys, edges);
     let (nt, n, n_in) = (state.frames(), state.n(), src.row.len());
-    let mut initial = Poses {
-        frames: nt,
-        n,
-        position: Vec::with_capacity(nt * n),
-        rotation: Vec::with_capacity(nt * n),
-    };
+    let mut initial = Poses::with_capacity(nt, n);
     let mut u = Vec::with_capacity(nt * n);
     let rows: Vec<usize> = state.origin.iter().map(|o| src.row[o]).collect();
     for t in 0..nt {

@@ -246,7 +246,7 @@ pub fn image_step<R: DifferentiableRenderer>(
         let g = timer
             .time("render backward", || renderer.backward(&cam, &inputs, settings, &saved, &v))
             .map_err(|e| anyhow::anyhow!("frame {t}: backward: {e}"))?;
-        let chain = std::time::Instant::now();
+        let chain = timer.start();
         let (half_w, half_h) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);
         let k3 = state.sh_rest.len() / n.max(1);
         for i in 0..n {
@@ -279,7 +279,7 @@ pub fn image_step<R: DifferentiableRenderer>(
             add_target_position_grads(at, &scaled, nf, 0, &target_cam);
         }
         debug_assert_eq!(grads.sh_rest.len(), n * k3);
-        timer.add("chain to parameters", chain.elapsed());
+        timer.stop("chain to parameters", chain);
     }
     Ok(ImageStep { terms, grads, screen_grad, screen_count })
 }

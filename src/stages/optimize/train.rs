@@ -148,12 +148,7 @@ fn graph_source(
     g: &GraphInputs,
 ) -> anyhow::Result<GraphSource> {
     let (nt, n) = (model.num_frames(), model.gaussians.len());
-    let mut initial = Poses {
-        frames: nt,
-        n,
-        position: Vec::with_capacity(nt * n),
-        rotation: Vec::with_capacity(nt * n),
-    };
+    let mut initial = Poses::with_capacity(nt, n);
     for t in 0..nt {
         let f = model.frame(t)?;
         initial.position.extend(f.position);
@@ -350,7 +345,7 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<PhaseTimes
         terms.extend(extra.iter().map(|(k, v)| (k.to_string(), *v)));
         let loss: f64 = terms.iter().map(|(_, v)| v).sum();
         timer.time("tie static poses", || c.state.tie_static(&mut grads.poses));
-        let adam_started = Instant::now();
+        let adam_started = timer.start();
         c.adam.begin_step();
         let st = &mut c.state;
         c.adam.update(0, st.poses.position.as_flattened_mut(), grads.poses.position.as_flattened());
@@ -364,8 +359,8 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<PhaseTimes
                 c.adam.update(6 + k, slice.values, slice.grads);
             }
         }
-        timer.add("Adam", adam_started.elapsed());
-        let density_started = Instant::now();
+        timer.stop("Adam", adam_started);
+        let density_started = timer.start();
         c.density.add(&img.screen_grad, &img.screen_count);
         if s.density.active(step, s.steps) {
             let protected: Vec<bool> =
@@ -402,7 +397,7 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<PhaseTimes
         if s.density.reset(step, s.steps) {
             density::reset_opacity(&mut c.state, &mut c.adam);
         }
-        timer.add("density control", density_started.elapsed());
+        timer.stop("density control", density_started);
         if step > first_step {
             times.merge(&timer);
         }

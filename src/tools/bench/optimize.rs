@@ -4,7 +4,8 @@
 //! temporary directory without checkpoints or density control and reads the per-step wall
 //! times from its training log; the first step (warm-up) is left out of the mean. A second
 //! table splits the mean step into its phases (render forward and backward, L_rgb, the
-//! motion or graph terms, Adam, ...; [`crate::stages::optimize::timing`]). Peak memory
+//! motion or graph terms, Adam, ...; [`crate::stages::optimize::timing`]), in wall time
+//! and in CPU time of all threads (which a busy machine inflates far less). Peak memory
 //! is the process's VmHWM. The global `--device` picks the renderer (`--device gpu` times the
 //! GPU renderer, software adapters included).
 
@@ -118,15 +119,22 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         rayon::current_num_threads()
     );
     println!();
-    println!("| phase | ms/step | share |");
-    println!("|---|---|---|");
-    let mut accounted = 0.0;
-    for (name, d) in &phases.totals {
-        let v = per_step * d.as_secs_f64();
-        accounted += v;
-        println!("| {name} | {v:.1} | {:.0}% |", 100.0 * v / ms);
+    println!("| phase | wall ms/step | share | CPU ms/step |");
+    println!("|---|---|---|---|");
+    let (mut wall, mut cpu) = (0.0, Some(0.0));
+    for (name, w, c) in &phases.totals {
+        let w = per_step * w.as_secs_f64();
+        let c = c.map(|c| per_step * c.as_secs_f64());
+        wall += w;
+        cpu = cpu.zip(c).map(|(a, b)| a + b);
+        println!("| {name} | {w:.1} | {:.0}% | {} |", 100.0 * w / ms, ms_or_dash(c));
     }
-    let rest = ms - accounted;
-    println!("| other (batch draw, gradient buffers, log) | {rest:.1} | {:.0}% |", 100.0 * rest / ms);
+    let rest = ms - wall;
+    println!("| other (batch draw, buffers, log) | {rest:.1} | {:.0}% | |", 100.0 * rest / ms);
+    println!("| all phases | {wall:.1} | {:.0}% | {} |", 100.0 * wall / ms, ms_or_dash(cpu));
     Ok(())
+}
+
+fn ms_or_dash(v: Option<f64>) -> String {
+    v.map_or("–".into(), |v| format!("{v:.1}"))
 }
