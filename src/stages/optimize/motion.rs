@@ -172,15 +172,16 @@ pub fn stream_frames<const K: usize>(
     grads: &mut PoseGrads,
     f: impl Fn(&Track, &mut TrackGrad) -> [f64; K] + Sync,
 ) -> [f64; K] {
-    stream_frames_in(poses, nodes, context, BLOCK_ROWS, grads, f)
+    stream_frames_in(poses, nodes, context, (BLOCK_ROWS, WAVE_ROWS), grads, f)
 }
 
-/// [`stream_frames`] with blocks of about `block_rows` rows (at least 4 frames).
+/// [`stream_frames`] with blocks of about `block_rows` rows (at least 4 frames) and waves of
+/// at most `wave_rows` rows (at least one block).
 fn stream_frames_in<const K: usize>(
     poses: &Poses,
     nodes: &[u32],
     context: usize,
-    block_rows: usize,
+    (block_rows, wave_rows): (usize, usize),
     grads: &mut PoseGrads,
     f: impl Fn(&Track, &mut TrackGrad) -> [f64; K] + Sync,
 ) -> [f64; K] {
@@ -192,7 +193,13 @@ fn stream_frames_in<const K: usize>(
     let b = (block_rows / m).max(4);
     let blocks: Vec<std::ops::Range<usize>> =
         (0..nt).step_by(b).map(|lo| lo..(lo + b).min(nt)).collect();
-    let wave = (WAVE_ROWS / ((b + context) * m)).clamp(1, 8);
+    // Blocks per wave: as many as fit in WAVE_ROWS, rounded down to a multiple of the
+    // threads so that no thread idles through a wave (3 blocks on 2 threads take as long as
+    // 4). Waves only bound memory: every gradient row still receives its own block's
+    // values before the next block's context values, so the result is the same.
+    let threads = rayon::current_num_threads().max(1);
+    let fit = (wave_rows / ((b + context) * m)).clamp(1, 8);
+    let wave = if fit >= threads { fit - fit % threads } else { fit };
     for w in blocks.chunks(wave) {
         let parts: Vec<(Track, TrackGrad, [f64; K])> = w
             .par_iter()
@@ -953,9 +960,10 @@ mod tests {
         let want = terms(&whole, &mut g);
         let mut want_g = PoseGrads::zeros(t, n);
         g.scatter(&whole, &nodes, n, &mut want_g);
-        // blocks of 4 frames plus 3 frames of context
+        // blocks of 4 frames plus 3 frames of context, waves of at most 3 blocks
         let mut got_g = PoseGrads::zeros(t, n);
-        let got = stream_frames_in(&poses, &nodes, 3, 4 * m, &mut got_g, terms);
+        let layout = (4 * m, 3 * 7 * m);
+        let got = stream_frames_in(&poses, &nodes, 3, layout, &mut got_g, terms);
         for (a, b) in got.iter().zip(&want) {
             assert!((a - b).abs() < 1e-9 * (1.0 + b.abs()), "{got:?} vs {want:?}");
         }
@@ -963,6 +971,14 @@ mod tests {
         assert!(close(got_g.position.as_flattened(), want_g.position.as_flattened()));
         assert!(close(got_g.rotation.as_flattened(), want_g.rotation.as_flattened()));
         assert!(want_g.position[7][0] != 0.0, "gradients reach the poses");
+        // 6 blocks in waves of 3 blocks (1 or 3 threads) or 2 (2 threads): the same bits.
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut g = PoseGrads::zeros(t, n);
+            let v = pool.install(|| stream_frames_in(&poses, &nodes, 3, layout, &mut g, terms));
+            assert_eq!(v.map(f64::to_bits), got.map(f64::to_bits), "{threads} threads");
+            assert_eq!(g, got_g, "{threads} threads");
+        }
     }
 
     #[test]
