@@ -376,6 +376,42 @@ impl Partial {
     }
 }
 
+impl Partial {
+    /// Add edge e's value `norm·w·len` and its weight gradient; returns the factor
+    /// `scale·norm·w/len` of the gradient with respect to the residual, when len > 0.
+    #[inline]
+    fn add_edge(&mut self, e: usize, w: f64, len: f64, norm: f64, scale: f64) -> Option<f64> {
+        self.value += norm * w * len;
+        if !self.g_w.is_empty() {
+            self.g_w[e] += scale * norm * len;
+        }
+        (len > 0.0).then(|| scale * norm * w / len)
+    }
+}
+
+/// An edge term coupling frames t−Δ and t (Δ ≥ 1): `frame(part, t − Δ, t, base, rows)`
+/// adds frame t's value and gradients, tasks as [`frame_windows`] lays them out; returns the
+/// value, per-edge gradients added to `g_edges` in task order.
+fn offset_term(
+    track: &Track,
+    edges: EdgeSet,
+    delta: usize,
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+    frame: impl Fn(&mut Partial, usize, usize, usize, &mut [[f64; GW]]) + Sync,
+) -> f64 {
+    assert!(delta >= 1, "offset Δ ≥ 1");
+    let (want_e, ne) = (g_edges.is_some(), edges.len());
+    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
+        let mut part = Partial::new(want_e, ne, false);
+        for t in ts {
+            frame(&mut part, t - delta, t, base, rows);
+        }
+        part
+    });
+    reduce(parts, g_edges)
+}
+
 /// The runs of edges that share a source, `(source, its edges)` in edge order (edges
 /// grouped by source, as kNN lists and the key-key edges are).
 pub fn by_source(src: &[u32]) -> impl Iterator<Item = (usize, std::ops::Range<usize>)> + '_ {
@@ -435,57 +471,40 @@ pub fn rigidity(
     g: &mut TrackGrad,
     g_edges: Option<&mut EdgeGrad>,
 ) -> f64 {
-    assert!(delta >= 1, "rigidity offset Δ ≥ 1");
     let m = track.m;
-    let want_e = g_edges.is_some();
-    let ne = edges.len();
-    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
-        let mut part = Partial::new(want_e, ne, false);
-        for t in ts {
-            let (t0, t1) = (t - delta, t);
-            for (i, run) in by_source(edges.src) {
-                let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
-                let c = q4::mul(a, q4::conj(b));
-                let rm = q4::to_rotmat(c);
-                let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
-                let mut g_rm: M3 = [[0.0; 3]; 3];
-                let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
-                for e in run {
-                    let j = edges.dst[e] as usize;
-                    let d0 = sub(track.p[track.at(t0, j)], pi0);
-                    let d1 = sub(track.p[track.at(t1, j)], pi1);
-                    let ad1 = q4::mat_vec(&rm, d1);
-                    let r = sub(d0, ad1);
-                    let len = norm3(r);
-                    let w = edges.w[e];
-                    part.value += norm * w * len;
-                    if want_e {
-                        part.g_w[e] += scale * norm * len;
-                    }
-                    if len > 0.0 {
-                        let k = scale * norm * w / len;
-                        let gr = r.map(|x| x * k);
-                        let gd1 = q4::mat_t_vec(&rm, gr).map(|x| -x);
-                        q4::add_outer(&mut g_rm, gr.map(|x| -x), d1);
-                        add_to(&mut rows[(t0 - base) * m + j], 0, &gr);
-                        add_to(&mut rows[(t1 - base) * m + j], 0, &gd1);
-                        for c in 0..3 {
-                            g_pi0[c] -= gr[c];
-                            g_pi1[c] -= gd1[c];
-                        }
+    offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
+        for (i, run) in by_source(edges.src) {
+            let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
+            let c = q4::mul(a, q4::conj(b));
+            let rm = q4::to_rotmat(c);
+            let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+            let mut g_rm: M3 = [[0.0; 3]; 3];
+            let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
+            for e in run {
+                let j = edges.dst[e] as usize;
+                let d0 = sub(track.p[track.at(t0, j)], pi0);
+                let d1 = sub(track.p[track.at(t1, j)], pi1);
+                let r = sub(d0, q4::mat_vec(&rm, d1));
+                if let Some(k) = part.add_edge(e, edges.w[e], norm3(r), norm, scale) {
+                    let gr = r.map(|x| x * k);
+                    let gd1 = q4::mat_t_vec(&rm, gr).map(|x| -x);
+                    q4::add_outer(&mut g_rm, gr.map(|x| -x), d1);
+                    add_to(&mut rows[(t0 - base) * m + j], 0, &gr);
+                    add_to(&mut rows[(t1 - base) * m + j], 0, &gd1);
+                    for c in 0..3 {
+                        g_pi0[c] -= gr[c];
+                        g_pi1[c] -= gd1[c];
                     }
                 }
-                let g_c = q4::to_rotmat_vjp(c, &g_rm);
-                let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
-                add_to(&mut rows[(t0 - base) * m + i], 0, &g_pi0);
-                add_to(&mut rows[(t1 - base) * m + i], 0, &g_pi1);
-                add_to(&mut rows[(t0 - base) * m + i], 7, &g_a);
-                add_to(&mut rows[(t1 - base) * m + i], 7, &q4::conj(g_bc));
             }
+            let g_c = q4::to_rotmat_vjp(c, &g_rm);
+            let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
+            add_to(&mut rows[(t0 - base) * m + i], 0, &g_pi0);
+            add_to(&mut rows[(t1 - base) * m + i], 0, &g_pi1);
+            add_to(&mut rows[(t0 - base) * m + i], 7, &g_a);
+            add_to(&mut rows[(t1 - base) * m + i], 7, &q4::conj(g_bc));
         }
-        part
-    });
-    reduce(parts, g_edges)
+    })
 }
 
 /// Relative rotation with offset Δ ≥ 1:
@@ -499,50 +518,34 @@ pub fn relative_rotation(
     g: &mut TrackGrad,
     g_edges: Option<&mut EdgeGrad>,
 ) -> f64 {
-    assert!(delta >= 1, "rotation offset Δ ≥ 1");
     let m = track.m;
-    let want_e = g_edges.is_some();
-    let ne = edges.len();
-    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
-        let mut part = Partial::new(want_e, ne, false);
-        for t in ts {
-            let (t0, t1) = (t - delta, t);
-            let rel = |k: usize| {
-                let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
-                (a, b, q4::mul(a, q4::conj(b)))
-            };
-            for (i, run) in by_source(edges.src) {
-                let (ai, bi, qi) = rel(i);
-                let mut g_qi = [0.0; 4];
-                for e in run {
-                    let j = edges.dst[e] as usize;
-                    let (aj, bj, qj) = rel(j);
-                    let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
-                    let len = q4::norm(r);
-                    let w = edges.w[e];
-                    part.value += norm * w * len;
-                    if want_e {
-                        part.g_w[e] += scale * norm * len;
-                    }
-                    if len > 0.0 {
-                        let k = scale * norm * w / len;
-                        let gr = r.map(|x| x * k);
-                        let (ga, gbc) = q4::mul_vjp(aj, q4::conj(bj), gr);
-                        add_to(&mut rows[(t1 - base) * m + j], 7, &ga);
-                        add_to(&mut rows[(t0 - base) * m + j], 7, &q4::conj(gbc));
-                        for c in 0..4 {
-                            g_qi[c] -= gr[c];
-                        }
+    offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
+        let rel = |k: usize| {
+            let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
+            (a, b, q4::mul(a, q4::conj(b)))
+        };
+        for (i, run) in by_source(edges.src) {
+            let (ai, bi, qi) = rel(i);
+            let mut g_qi = [0.0; 4];
+            for e in run {
+                let j = edges.dst[e] as usize;
+                let (aj, bj, qj) = rel(j);
+                let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
+                if let Some(k) = part.add_edge(e, edges.w[e], q4::norm(r), norm, scale) {
+                    let gr = r.map(|x| x * k);
+                    let (ga, gbc) = q4::mul_vjp(aj, q4::conj(bj), gr);
+                    add_to(&mut rows[(t1 - base) * m + j], 7, &ga);
+                    add_to(&mut rows[(t0 - base) * m + j], 7, &q4::conj(gbc));
+                    for c in 0..4 {
+                        g_qi[c] -= gr[c];
                     }
                 }
-                let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
-                add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
-                add_to(&mut rows[(t0 - base) * m + i], 7, &q4::conj(gbc));
             }
+            let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
+            add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
+            add_to(&mut rows[(t0 - base) * m + i], 7, &q4::conj(gbc));
         }
-        part
-    });
-    reduce(parts, g_edges)
+    })
 }
 
 /// Isometry: `norm · Σ_{t=0}^{T−1} Σ_e w_e |D_e − ‖d_e(t)‖|` with rest lengths `rest` `[E]`.
