@@ -27,6 +27,7 @@ use rayon::prelude::*;
 
 use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
 use super::poses::{PoseGrads, Poses};
+use super::timing::PhaseTimes;
 use crate::math::dqb::{self, Dq};
 use crate::math::quat64::{self as q4, M3, V3};
 use crate::tables::edges::{EdgeKind, Edges};
@@ -380,14 +381,9 @@ impl GraphObjective {
     /// The current key-key weights w_ij = |W_ij| / Σ_j |W_ij| `[E]`.
     fn key_weights(&self) -> Vec<f64> {
         let mut w = vec![0.0; self.ksrc.len()];
-        let mut e = 0;
-        while e < w.len() {
-            let s = e;
-            while e < w.len() && self.ksrc[e] == self.ksrc[s] {
-                e += 1;
-            }
-            let sum: f64 = self.w_raw[s..e].iter().map(|x| x.abs() as f64).sum();
-            for k in s..e {
+        for (_, run) in motion::by_source(&self.ksrc) {
+            let sum: f64 = self.w_raw[run.clone()].iter().map(|x| x.abs() as f64).sum();
+            for k in run {
                 w[k] = if sum > 0.0 { self.w_raw[k].abs() as f64 / sum } else { 0.0 };
             }
         }
@@ -513,12 +509,14 @@ impl GraphObjective {
     /// Evaluate every term on `poses` (DQB terms on the batch `frames`), add the gradients
     /// to `grads` (poses) and to the objective's own tensors (see [`Self::params_mut`];
     /// reset here), and return each term's contribution (weight × value) by name.
+    /// Each part's wall time is added to `timer`.
     pub fn evaluate(
         &mut self,
         poses: &Poses,
         frames: &[usize],
         rng_seed: u64,
         grads: &mut PoseGrads,
+        timer: &mut PhaseTimes,
     ) -> Vec<(&'static str, f64)> {
         assert_eq!((poses.frames, poses.n), (self.frames, self.n), "poses [T, N]");
         self.g_w_raw.fill(0.0);
@@ -527,16 +525,19 @@ impl GraphObjective {
         self.g_src_q.fill(0.0);
         let mut out = Vec::new();
         let s = self.s.clone();
-        let ka = self.anchor(poses, &self.keys.clone(), s.key_anchor, grads);
+        let (ka, na) = timer.time("graph anchors", || {
+            let ka = self.anchor(poses, &self.keys, s.key_anchor, grads);
+            (ka, self.anchor(poses, &self.nonkeys, s.nonkey_anchor, grads))
+        });
         out.push(("key_anchor", s.key_anchor * ka));
-        let na = self.anchor(poses, &self.nonkeys.clone(), s.nonkey_anchor, grads);
         out.push(("nonkey_anchor", s.nonkey_anchor * na));
-        let (dp, dq) = self.dqb_terms(poses, frames, grads);
+        let (dp, dq) = timer.time("graph DQB", || self.dqb_terms(poses, frames, grads));
         out.push(("nonkey_dqb", s.dqb * dp));
         out.push(("nonkey_dqb_rotation", s.dqb_rotation * dq));
-        out.extend(self.key_motion(poses, rng_seed, grads));
+        let key = timer.time("graph key motion", || self.key_motion(poses, rng_seed, grads));
+        out.extend(key);
         // Smoothness over keys and non-keys.
-        let [vel, acc] = self.smoothness(poses, grads);
+        let [vel, acc] = timer.time("graph smoothness", || self.smoothness(poses, grads));
         let [lv, la] = s.lambda_vel_acc;
         out.push(("velocity", lv * vel));
         out.push(("acceleration", la * acc));
@@ -553,7 +554,7 @@ impl GraphObjective {
         let norm_form = if mean { MotionForm::Release } else { form };
         let (nv, na) = motion::smoothness_norms(norm_form, self.frames, all.len());
         motion::stream_frames(poses, &all, 2, grads, |tr, g| {
-            [motion::velocity(tr, form, nv, lv, g), motion::acceleration(tr, form, na, la, g)]
+            motion::smoothness(tr, form, (nv, lv), (na, la), g)
         })
     }
 
@@ -653,16 +654,11 @@ impl GraphObjective {
         if s.motion == MotionForm::Paper {
             self.g_rest.fill(0.0);
         }
-        let mut e = 0;
-        while e < g_w.len() {
-            let st = e;
-            while e < g_w.len() && self.ksrc[e] == self.ksrc[st] {
-                e += 1;
-            }
-            let sum: f64 = self.w_raw[st..e].iter().map(|x| x.abs() as f64).sum();
+        for (_, run) in motion::by_source(&self.ksrc) {
+            let sum: f64 = self.w_raw[run.clone()].iter().map(|x| x.abs() as f64).sum();
             if sum > 0.0 {
-                let dot: f64 = (st..e).map(|k| g_w[k] * w_all[k]).sum();
-                for k in st..e {
+                let dot: f64 = run.clone().map(|k| g_w[k] * w_all[k]).sum();
+                for k in run {
                     let sg = if self.w_raw[k] >= 0.0 { 1.0 } else { -1.0 };
                     self.g_w_raw[k] += (sg * (g_w[k] - dot) / sum) as f32;
                 }
@@ -916,7 +912,10 @@ mod tests {
 
     fn total(obj: &mut GraphObjective, poses: &Poses) -> f64 {
         let mut g = PoseGrads::zeros(poses.frames, poses.n);
-        obj.evaluate(poses, &[1, 4, 20], 7, &mut g).iter().map(|x| x.1).sum()
+        obj.evaluate(poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default())
+            .iter()
+            .map(|x| x.1)
+            .sum()
     }
 
     #[test]
@@ -948,7 +947,7 @@ mod tests {
                 obj.w_raw[k] *= 1.0 + 0.3 * (k as f32 * 0.37).sin();
             }
             let mut g = PoseGrads::zeros(poses.frames, poses.n);
-            let terms = obj.evaluate(&poses, &[1, 4, 20], 7, &mut g);
+            let terms = obj.evaluate(&poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default());
             assert!(terms.iter().all(|t| t.1.is_finite()), "{name}: {terms:?}");
             let own: Vec<(&str, Vec<f32>)> =
                 obj.params_mut().into_iter().map(|p| (p.name, p.grads.to_vec())).collect();
@@ -1060,7 +1059,7 @@ mod tests {
             let reps = 3;
             for r in 0..reps {
                 g.clear();
-                obj.evaluate(&p0, &frames, r, &mut g);
+                obj.evaluate(&p0, &frames, r, &mut g, &mut PhaseTimes::default());
             }
             let ms = start.elapsed().as_secs_f64() * 1e3 / reps as f64;
             let part = |f: &mut dyn FnMut()| {

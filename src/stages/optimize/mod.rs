@@ -15,7 +15,20 @@ pub mod params;
 pub mod poses;
 pub mod state;
 pub mod step;
+pub mod timing;
 pub mod train;
 
 pub use params::OptimizeParams;
 pub use train::run;
+
+/// sign(x) with sign(0) = 0: the subgradient of |x| that the L1 terms use.
+#[inline]
+pub fn sign(x: f64) -> f64 {
+    if x > 0.0 {
+        1.0
+    } else if x < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}

@@ -25,6 +25,7 @@
 use rayon::prelude::*;
 
 use super::poses::{PoseGrads, Poses};
+use super::sign;
 use crate::math::quat64::{self as q4, M3, Q, V3};
 
 /// Width of one gradient row: position (3), raw quaternion (4), unit quaternion (4).
@@ -171,15 +172,16 @@ pub fn stream_frames<const K: usize>(
     grads: &mut PoseGrads,
     f: impl Fn(&Track, &mut TrackGrad) -> [f64; K] + Sync,
 ) -> [f64; K] {
-    stream_frames_in(poses, nodes, context, BLOCK_ROWS, grads, f)
+    stream_frames_in(poses, nodes, context, (BLOCK_ROWS, WAVE_ROWS), grads, f)
 }
 
-/// [`stream_frames`] with blocks of about `block_rows` rows (at least 4 frames).
+/// [`stream_frames`] with blocks of about `block_rows` rows (at least 4 frames) and waves of
+/// at most `wave_rows` rows (at least one block).
 fn stream_frames_in<const K: usize>(
     poses: &Poses,
     nodes: &[u32],
     context: usize,
-    block_rows: usize,
+    (block_rows, wave_rows): (usize, usize),
     grads: &mut PoseGrads,
     f: impl Fn(&Track, &mut TrackGrad) -> [f64; K] + Sync,
 ) -> [f64; K] {
@@ -191,7 +193,13 @@ fn stream_frames_in<const K: usize>(
     let b = (block_rows / m).max(4);
     let blocks: Vec<std::ops::Range<usize>> =
         (0..nt).step_by(b).map(|lo| lo..(lo + b).min(nt)).collect();
-    let wave = (WAVE_ROWS / ((b + context) * m)).clamp(1, 8);
+    // Blocks per wave: as many as fit in WAVE_ROWS, rounded down to a multiple of the
+    // threads so that no thread idles through a wave (3 blocks on 2 threads take as long as
+    // 4). Waves only bound memory: every gradient row still receives its own block's
+    // values before the next block's context values, so the result is the same.
+    let threads = rayon::current_num_threads().max(1);
+    let fit = (wave_rows / ((b + context) * m)).clamp(1, 8);
+    let wave = if fit >= threads { fit - fit % threads } else { fit };
     for w in blocks.chunks(wave) {
         let parts: Vec<(Track, TrackGrad, [f64; K])> = w
             .par_iter()
@@ -233,7 +241,8 @@ fn stream_frames_in<const K: usize>(
     total
 }
 
-/// The norms of [`velocity`] and [`acceleration`] for `m` Gaussians over T `frames`:
+/// The norms of the velocity and acceleration of [`smoothness`] for `m` Gaussians over T
+/// `frames`:
 /// 1 for the paper's sums, the release's means.
 pub fn smoothness_norms(form: MotionForm, frames: usize, m: usize) -> (f64, f64) {
     match form {
@@ -358,6 +367,66 @@ struct Partial {
     g_rest: Vec<f64>,
 }
 
+impl Partial {
+    /// Zero, with per-edge gradients of `ne` weights when `want_e` (and of the rest
+    /// lengths when `rest` too).
+    fn new(want_e: bool, ne: usize, rest: bool) -> Self {
+        let zeros = |on: bool| if on { vec![0.0; ne] } else { Vec::new() };
+        Partial { value: 0.0, g_w: zeros(want_e), g_rest: zeros(want_e && rest) }
+    }
+}
+
+impl Partial {
+    /// Add edge e's value `norm·w·len` and its weight gradient; returns the factor
+    /// `scale·norm·w/len` of the gradient with respect to the residual, when len > 0.
+    #[inline]
+    fn add_edge(&mut self, e: usize, w: f64, len: f64, norm: f64, scale: f64) -> Option<f64> {
+        self.value += norm * w * len;
+        if !self.g_w.is_empty() {
+            self.g_w[e] += scale * norm * len;
+        }
+        (len > 0.0).then(|| scale * norm * w / len)
+    }
+}
+
+/// An edge term coupling frames t−Δ and t (Δ ≥ 1): `frame(part, t − Δ, t, base, rows)`
+/// adds frame t's value and gradients, tasks as [`frame_windows`] lays them out; returns the
+/// value, per-edge gradients added to `g_edges` in task order.
+fn offset_term(
+    track: &Track,
+    edges: EdgeSet,
+    delta: usize,
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+    frame: impl Fn(&mut Partial, usize, usize, usize, &mut [[f64; GW]]) + Sync,
+) -> f64 {
+    assert!(delta >= 1, "offset Δ ≥ 1");
+    let (want_e, ne) = (g_edges.is_some(), edges.len());
+    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
+        let mut part = Partial::new(want_e, ne, false);
+        for t in ts {
+            frame(&mut part, t - delta, t, base, rows);
+        }
+        part
+    });
+    reduce(parts, g_edges)
+}
+
+/// The runs of edges that share a source, `(source, its edges)` in edge order (edges
+/// grouped by source, as kNN lists and the key-key edges are).
+pub fn by_source(src: &[u32]) -> impl Iterator<Item = (usize, std::ops::Range<usize>)> + '_ {
+    let mut e = 0;
+    std::iter::from_fn(move || {
+        (e < src.len()).then(|| {
+            let first = e;
+            while e < src.len() && src[e] == src[first] {
+                e += 1;
+            }
+            (src[first] as usize, first..e)
+        })
+    })
+}
+
 fn reduce(parts: Vec<Partial>, g_edges: Option<&mut EdgeGrad>) -> f64 {
     let mut value = 0.0;
     let mut ge = g_edges;
@@ -402,64 +471,40 @@ pub fn rigidity(
     g: &mut TrackGrad,
     g_edges: Option<&mut EdgeGrad>,
 ) -> f64 {
-    assert!(delta >= 1, "rigidity offset Δ ≥ 1");
     let m = track.m;
-    let want_e = g_edges.is_some();
-    let ne = edges.len();
-    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
-        let mut part = Partial {
-            value: 0.0,
-            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
-            g_rest: Vec::new(),
-        };
-        for t in ts {
-            let (t0, t1) = (t - delta, t);
-            let mut e = 0;
-            while e < ne {
-                let i = edges.src[e] as usize;
-                let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
-                let c = q4::mul(a, q4::conj(b));
-                let rm = q4::to_rotmat(c);
-                let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
-                let mut g_rm: M3 = [[0.0; 3]; 3];
-                let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
-                while e < ne && edges.src[e] as usize == i {
-                    let j = edges.dst[e] as usize;
-                    let d0 = sub(track.p[track.at(t0, j)], pi0);
-                    let d1 = sub(track.p[track.at(t1, j)], pi1);
-                    let ad1 = q4::mat_vec(&rm, d1);
-                    let r = sub(d0, ad1);
-                    let len = norm3(r);
-                    let w = edges.w[e];
-                    part.value += norm * w * len;
-                    if want_e {
-                        part.g_w[e] += scale * norm * len;
+    offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
+        for (i, run) in by_source(edges.src) {
+            let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
+            let c = q4::mul(a, q4::conj(b));
+            let rm = q4::to_rotmat(c);
+            let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+            let mut g_rm: M3 = [[0.0; 3]; 3];
+            let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
+            for e in run {
+                let j = edges.dst[e] as usize;
+                let d0 = sub(track.p[track.at(t0, j)], pi0);
+                let d1 = sub(track.p[track.at(t1, j)], pi1);
+                let r = sub(d0, q4::mat_vec(&rm, d1));
+                if let Some(k) = part.add_edge(e, edges.w[e], norm3(r), norm, scale) {
+                    let gr = r.map(|x| x * k);
+                    let gd1 = q4::mat_t_vec(&rm, gr).map(|x| -x);
+                    q4::add_outer(&mut g_rm, gr.map(|x| -x), d1);
+                    add_to(&mut rows[(t0 - base) * m + j], 0, &gr);
+                    add_to(&mut rows[(t1 - base) * m + j], 0, &gd1);
+                    for c in 0..3 {
+                        g_pi0[c] -= gr[c];
+                        g_pi1[c] -= gd1[c];
                     }
-                    if len > 0.0 {
-                        let k = scale * norm * w / len;
-                        let gr = r.map(|x| x * k);
-                        let gd1 = q4::mat_t_vec(&rm, gr).map(|x| -x);
-                        q4::add_outer(&mut g_rm, gr.map(|x| -x), d1);
-                        add_to(&mut rows[(t0 - base) * m + j], 0, &gr);
-                        add_to(&mut rows[(t1 - base) * m + j], 0, &gd1);
-                        for c in 0..3 {
-                            g_pi0[c] -= gr[c];
-                            g_pi1[c] -= gd1[c];
-                        }
-                    }
-                    e += 1;
                 }
-                let g_c = q4::to_rotmat_vjp(c, &g_rm);
-                let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
-                add_to(&mut rows[(t0 - base) * m + i], 0, &g_pi0);
-                add_to(&mut rows[(t1 - base) * m + i], 0, &g_pi1);
-                add_to(&mut rows[(t0 - base) * m + i], 7, &g_a);
-                add_to(&mut rows[(t1 - base) * m + i], 7, &q4::conj(g_bc));
             }
+            let g_c = q4::to_rotmat_vjp(c, &g_rm);
+            let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
+            add_to(&mut rows[(t0 - base) * m + i], 0, &g_pi0);
+            add_to(&mut rows[(t1 - base) * m + i], 0, &g_pi1);
+            add_to(&mut rows[(t0 - base) * m + i], 7, &g_a);
+            add_to(&mut rows[(t1 - base) * m + i], 7, &q4::conj(g_bc));
         }
-        part
-    });
-    reduce(parts, g_edges)
+    })
 }
 
 /// Relative rotation with offset Δ ≥ 1:
@@ -473,57 +518,34 @@ pub fn relative_rotation(
     g: &mut TrackGrad,
     g_edges: Option<&mut EdgeGrad>,
 ) -> f64 {
-    assert!(delta >= 1, "rotation offset Δ ≥ 1");
     let m = track.m;
-    let want_e = g_edges.is_some();
-    let ne = edges.len();
-    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
-        let mut part = Partial {
-            value: 0.0,
-            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
-            g_rest: Vec::new(),
+    offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
+        let rel = |k: usize| {
+            let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
+            (a, b, q4::mul(a, q4::conj(b)))
         };
-        for t in ts {
-            let (t0, t1) = (t - delta, t);
-            let rel = |k: usize| {
-                let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
-                (a, b, q4::mul(a, q4::conj(b)))
-            };
-            let mut e = 0;
-            while e < ne {
-                let i = edges.src[e] as usize;
-                let (ai, bi, qi) = rel(i);
-                let mut g_qi = [0.0; 4];
-                while e < ne && edges.src[e] as usize == i {
-                    let j = edges.dst[e] as usize;
-                    let (aj, bj, qj) = rel(j);
-                    let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
-                    let len = q4::norm(r);
-                    let w = edges.w[e];
-                    part.value += norm * w * len;
-                    if want_e {
-                        part.g_w[e] += scale * norm * len;
+        for (i, run) in by_source(edges.src) {
+            let (ai, bi, qi) = rel(i);
+            let mut g_qi = [0.0; 4];
+            for e in run {
+                let j = edges.dst[e] as usize;
+                let (aj, bj, qj) = rel(j);
+                let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
+                if let Some(k) = part.add_edge(e, edges.w[e], q4::norm(r), norm, scale) {
+                    let gr = r.map(|x| x * k);
+                    let (ga, gbc) = q4::mul_vjp(aj, q4::conj(bj), gr);
+                    add_to(&mut rows[(t1 - base) * m + j], 7, &ga);
+                    add_to(&mut rows[(t0 - base) * m + j], 7, &q4::conj(gbc));
+                    for c in 0..4 {
+                        g_qi[c] -= gr[c];
                     }
-                    if len > 0.0 {
-                        let k = scale * norm * w / len;
-                        let gr = r.map(|x| x * k);
-                        let (ga, gbc) = q4::mul_vjp(aj, q4::conj(bj), gr);
-                        add_to(&mut rows[(t1 - base) * m + j], 7, &ga);
-                        add_to(&mut rows[(t0 - base) * m + j], 7, &q4::conj(gbc));
-                        for c in 0..4 {
-                            g_qi[c] -= gr[c];
-                        }
-                    }
-                    e += 1;
                 }
-                let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
-                add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
-                add_to(&mut rows[(t0 - base) * m + i], 7, &q4::conj(gbc));
             }
+            let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
+            add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
+            add_to(&mut rows[(t0 - base) * m + i], 7, &q4::conj(gbc));
         }
-        part
-    });
-    reduce(parts, g_edges)
+    })
 }
 
 /// Isometry: `norm · Σ_{t=0}^{T−1} Σ_e w_e |D_e − ‖d_e(t)‖|` with rest lengths `rest` `[E]`.
@@ -541,11 +563,7 @@ pub fn isometry(
     let want_e = g_edges.is_some();
     let ne = edges.len();
     let parts = frame_windows(g, track.frames, 0, track.first, |ts, base, rows| {
-        let mut part = Partial {
-            value: 0.0,
-            g_w: if want_e { vec![0.0; ne] } else { Vec::new() },
-            g_rest: if want_e { vec![0.0; ne] } else { Vec::new() },
-        };
+        let mut part = Partial::new(want_e, ne, true);
         for t in ts {
             for e in 0..ne {
                 let (i, j) = (edges.src[e] as usize, edges.dst[e] as usize);
@@ -554,13 +572,7 @@ pub fn isometry(
                 let r = len - rest[e];
                 let w = edges.w[e];
                 part.value += norm * w * r.abs();
-                let s = if r > 0.0 {
-                    1.0
-                } else if r < 0.0 {
-                    -1.0
-                } else {
-                    0.0
-                };
+                let s = sign(r);
                 if want_e {
                     part.g_w[e] += scale * norm * r.abs();
                     part.g_rest[e] -= scale * norm * w * s;
@@ -578,29 +590,126 @@ pub fn isometry(
     reduce(parts, g_edges)
 }
 
+/// A unit quaternion standardised to w ≥ 0, and the sign applied.
 #[inline]
-fn sign(x: f64) -> f64 {
-    if x > 0.0 {
-        1.0
-    } else if x < 0.0 {
-        -1.0
-    } else {
-        0.0
-    }
-}
-
-/// Relative rotation `a ⊗ b*` of unit quaternions, standardised to w ≥ 0, and that sign.
-#[inline]
-fn rel_std(a: Q, b: Q) -> (Q, f64) {
-    let r = q4::mul(a, q4::conj(b));
+fn standardized(r: Q) -> (Q, f64) {
     if r[0] < 0.0 { (r.map(|x| -x), -1.0) } else { (r, 1.0) }
 }
 
-/// Velocity over all Gaussians of the track: `norm ·` the sum below (unscaled), `scale ·`
-/// its gradient added. Paper: `Σ_{t≥1} Σ_i ‖p_{t−1} − p_t‖₁ + ‖std(q_{t−1} q_t*) − 1‖₁`
-/// (norm 1); release: `Σ ‖p_t − p_{t+1}‖²/3 + ‖q_t − q_{t+1}‖²/4`, whose mean over the
-/// components is norm = 1/((T−1)·m) ([`smoothness_norms`]).
-pub fn velocity(track: &Track, form: MotionForm, norm: f64, scale: f64, g: &mut TrackGrad) -> f64 {
+/// Velocity and acceleration over all Gaussians of the track, `[velocity, acceleration]`,
+/// each `norm ·` its sum below (unscaled), with `scale ·` its gradient added; `vel` and
+/// `acc` are `(norm, scale)`.
+///
+/// Paper (norms 1): velocity `Σ_{t≥1} Σ_i ‖p_{t−1} − p_t‖₁ + ‖std(r_t) − 1‖₁` and
+/// acceleration `Σ_{t≥2} Σ_i ‖p_{t−2} − 2p_{t−1} + p_t‖₁ + ‖std(r_{t−1} r_t*) − 1‖₁` with
+/// the relative rotations r_t = q_{t−1} q_t* (unit quaternions). Both terms are taken in one
+/// pass that forms each r_t once and chains the gradients of both terms through it once.
+///
+/// Release: velocity `Σ ‖p_t − p_{t+1}‖²/3 + ‖q_t − q_{t+1}‖²/4`, whose mean over the
+/// components is norm = 1/((T−1)·m), and acceleration `Σ ‖2p_{t−1} − p_{t−2} − p_t‖ +
+/// ‖2q_{t−1} − q_{t−2} − q_t‖` (raw q), a mean with norm = 1/((T−2)·m)
+/// ([`smoothness_norms`]).
+pub fn smoothness(
+    track: &Track,
+    form: MotionForm,
+    vel: (f64, f64),
+    acc: (f64, f64),
+    g: &mut TrackGrad,
+) -> [f64; 2] {
+    match form {
+        MotionForm::Paper => smoothness_paper(track, vel, acc, g),
+        MotionForm::Release => {
+            [velocity_release(track, vel.0, vel.1, g), acceleration_release(track, acc.0, acc.1, g)]
+        }
+    }
+}
+
+/// The paper form of [`smoothness`]: per task (frames `ts` of [`frame_windows`]) and per
+/// Gaussian, a sweep over t that keeps r_{t−1} and its gradient, adds it to the unit
+/// quaternions of frames t−2, t−1 once r_{t−1} has no more terms, and moves on.
+fn smoothness_paper(
+    track: &Track,
+    (norm_v, scale_v): (f64, f64),
+    (norm_a, scale_a): (f64, f64),
+    g: &mut TrackGrad,
+) -> [f64; 2] {
+    let (nt, m) = (track.frames, track.m);
+    if nt < 2 || m == 0 {
+        return [0.0; 2];
+    }
+    let (kv, ka) = (scale_v * norm_v, scale_a * norm_a);
+    let parts = frame_windows(g, nt, 1, track.first, |ts, base, rows| {
+        let (mut v, mut a) = (0.0, 0.0);
+        // r_t for t ≥ r_lo: r_{ts.start − 1} is the r_{t−1} of the first acceleration term.
+        let r_lo = (ts.start - 1).max(1);
+        for k in 0..m {
+            let row = |t: usize| (t - base) * m + k;
+            // d/d(r_t) of r_t = u_{t−1} u_t*, to the unit quaternions of t−1 and t.
+            let chain = |rows: &mut [[f64; GW]], t: usize, gr: Q| {
+                let (ga, gbc) =
+                    q4::mul_vjp(track.u[track.at(t - 1, k)], q4::conj(track.u[track.at(t, k)]), gr);
+                add_to(&mut rows[row(t - 1)], 7, &ga);
+                add_to(&mut rows[row(t)], 7, &q4::conj(gbc));
+            };
+            let mut prev: Option<(Q, Q)> = None;
+            for t in r_lo..ts.end {
+                let r_t = q4::mul(track.u[track.at(t - 1, k)], q4::conj(track.u[track.at(t, k)]));
+                let mut g_t = [0.0; 4];
+                if t >= ts.start {
+                    let d = sub(track.p[track.at(t - 1, k)], track.p[track.at(t, k)]);
+                    v += d.iter().map(|x| x.abs()).sum::<f64>();
+                    let gd = d.map(|x| kv * sign(x));
+                    add_to(&mut rows[row(t - 1)], 0, &gd);
+                    add_to(&mut rows[row(t)], 0, &gd.map(|x| -x));
+                    let (r, s) = standardized(r_t);
+                    let dev = [r[0] - 1.0, r[1], r[2], r[3]];
+                    v += dev.iter().map(|x| x.abs()).sum::<f64>();
+                    add4(&mut g_t, dev.map(|x| kv * s * sign(x)));
+                    if let Some((r_p, g_p)) = prev.as_mut() {
+                        let (p0, p1, p2) = (
+                            track.p[track.at(t - 2, k)],
+                            track.p[track.at(t - 1, k)],
+                            track.p[track.at(t, k)],
+                        );
+                        let d = [0, 1, 2].map(|c| p0[c] - 2.0 * p1[c] + p2[c]);
+                        a += d.iter().map(|x| x.abs()).sum::<f64>();
+                        let gd = d.map(|x| ka * sign(x));
+                        add_to(&mut rows[row(t - 2)], 0, &gd);
+                        add_to(&mut rows[row(t - 1)], 0, &gd.map(|x| -2.0 * x));
+                        add_to(&mut rows[row(t)], 0, &gd);
+                        let (r, s) = standardized(q4::mul(*r_p, q4::conj(r_t)));
+                        let dev = [r[0] - 1.0, r[1], r[2], r[3]];
+                        a += dev.iter().map(|x| x.abs()).sum::<f64>();
+                        let gr = dev.map(|x| ka * s * sign(x));
+                        let (g_r1, g_r2c) = q4::mul_vjp(*r_p, q4::conj(r_t), gr);
+                        add4(g_p, g_r1);
+                        add4(&mut g_t, q4::conj(g_r2c));
+                    }
+                }
+                if let Some((_, g_p)) = prev {
+                    chain(rows, t - 1, g_p);
+                }
+                prev = Some((r_t, g_t));
+            }
+            if let Some((_, g_p)) = prev {
+                chain(rows, ts.end - 1, g_p);
+            }
+        }
+        [v, a]
+    });
+    let [v, a] = parts.into_iter().fold([0.0; 2], |s, p| [s[0] + p[0], s[1] + p[1]]);
+    [norm_v * v, norm_a * a]
+}
+
+#[inline]
+fn add4(a: &mut Q, b: Q) {
+    for c in 0..4 {
+        a[c] += b[c];
+    }
+}
+
+/// The release's velocity (see [`smoothness`]).
+fn velocity_release(track: &Track, norm: f64, scale: f64, g: &mut TrackGrad) -> f64 {
     let (nt, m) = (track.frames, track.m);
     if nt < 2 || m == 0 {
         return 0.0;
@@ -612,36 +721,17 @@ pub fn velocity(track: &Track, form: MotionForm, norm: f64, scale: f64, g: &mut 
             for k in 0..m {
                 let (i0, i1) = (track.at(t - 1, k), track.at(t, k));
                 let (r0, r1) = ((t - 1 - base) * m + k, (t - base) * m + k);
-                match form {
-                    MotionForm::Paper => {
-                        let d = sub(track.p[i0], track.p[i1]);
-                        v += d.iter().map(|x| x.abs()).sum::<f64>();
-                        let gd = d.map(|x| scale * sign(x));
-                        add_to(&mut rows[r0], 0, &gd);
-                        add_to(&mut rows[r1], 0, &gd.map(|x| -x));
-                        let (a, b) = (track.u[i0], track.u[i1]);
-                        let (r, s) = rel_std(a, b);
-                        let dev = [r[0] - 1.0, r[1], r[2], r[3]];
-                        v += dev.iter().map(|x| x.abs()).sum::<f64>();
-                        let gr = dev.map(|x| scale * s * sign(x));
-                        let (ga, gbc) = q4::mul_vjp(a, q4::conj(b), gr);
-                        add_to(&mut rows[r0], 7, &ga);
-                        add_to(&mut rows[r1], 7, &q4::conj(gbc));
-                    }
-                    MotionForm::Release => {
-                        let d = sub(track.p[i1], track.p[i0]);
-                        let dq = [0, 1, 2, 3].map(|c| track.q[i1][c] - track.q[i0][c]);
-                        let (np, nq) = (3.0, 4.0);
-                        v += d.iter().map(|x| x * x).sum::<f64>() / np;
-                        v += dq.iter().map(|x| x * x).sum::<f64>() / nq;
-                        let gd = d.map(|x| scale * 2.0 * x / np);
-                        let gq = dq.map(|x| scale * 2.0 * x / nq);
-                        add_to(&mut rows[r1], 0, &gd);
-                        add_to(&mut rows[r0], 0, &gd.map(|x| -x));
-                        add_to(&mut rows[r1], 3, &gq);
-                        add_to(&mut rows[r0], 3, &gq.map(|x| -x));
-                    }
-                }
+                let d = sub(track.p[i1], track.p[i0]);
+                let dq = [0, 1, 2, 3].map(|c| track.q[i1][c] - track.q[i0][c]);
+                let (np, nq) = (3.0, 4.0);
+                v += d.iter().map(|x| x * x).sum::<f64>() / np;
+                v += dq.iter().map(|x| x * x).sum::<f64>() / nq;
+                let gd = d.map(|x| scale * 2.0 * x / np);
+                let gq = dq.map(|x| scale * 2.0 * x / nq);
+                add_to(&mut rows[r1], 0, &gd);
+                add_to(&mut rows[r0], 0, &gd.map(|x| -x));
+                add_to(&mut rows[r1], 3, &gq);
+                add_to(&mut rows[r0], 3, &gq.map(|x| -x));
             }
         }
         v
@@ -649,18 +739,8 @@ pub fn velocity(track: &Track, form: MotionForm, norm: f64, scale: f64, g: &mut 
     norm * parts.into_iter().sum::<f64>()
 }
 
-/// Acceleration over all Gaussians of the track: `norm ·` the sum below (unscaled),
-/// `scale ·` its gradient added. Paper: `Σ_{t≥2} Σ_i ‖p_{t−2} − 2p_{t−1} + p_t‖₁ +
-/// ‖std(r₁ r₂*) − 1‖₁` with r₁ = q_{t−2} q_{t−1}*, r₂ = q_{t−1} q_t* (norm 1); release:
-/// `Σ ‖2p_{t−1} − p_{t−2} − p_t‖ + ‖2q_{t−1} − q_{t−2} − q_t‖` (raw q), a mean with
-/// norm = 1/((T−2)·m).
-pub fn acceleration(
-    track: &Track,
-    form: MotionForm,
-    norm: f64,
-    scale: f64,
-    g: &mut TrackGrad,
-) -> f64 {
+/// The release's acceleration (see [`smoothness`]).
+fn acceleration_release(track: &Track, norm: f64, scale: f64, g: &mut TrackGrad) -> f64 {
     let (nt, m) = (track.frames, track.m);
     if nt < 3 || m == 0 {
         return 0.0;
@@ -674,47 +754,21 @@ pub fn acceleration(
                 let rw = [(t - 2 - base) * m + k, (t - 1 - base) * m + k, (t - base) * m + k];
                 let (p0, p1, p2) = (track.p[ix[0]], track.p[ix[1]], track.p[ix[2]]);
                 let d = [0, 1, 2].map(|c| p0[c] - 2.0 * p1[c] + p2[c]);
-                match form {
-                    MotionForm::Paper => {
-                        v += d.iter().map(|x| x.abs()).sum::<f64>();
-                        let gd = d.map(|x| scale * sign(x));
-                        add_to(&mut rows[rw[0]], 0, &gd);
-                        add_to(&mut rows[rw[1]], 0, &gd.map(|x| -2.0 * x));
-                        add_to(&mut rows[rw[2]], 0, &gd);
-                        let (u0, u1, u2) = (track.u[ix[0]], track.u[ix[1]], track.u[ix[2]]);
-                        let r1 = q4::mul(u0, q4::conj(u1));
-                        let r2 = q4::mul(u1, q4::conj(u2));
-                        let (r, s) = rel_std(r1, r2);
-                        let dev = [r[0] - 1.0, r[1], r[2], r[3]];
-                        v += dev.iter().map(|x| x.abs()).sum::<f64>();
-                        let gr = dev.map(|x| scale * s * sign(x));
-                        let (g_r1, g_r2c) = q4::mul_vjp(r1, q4::conj(r2), gr);
-                        let g_r2 = q4::conj(g_r2c);
-                        let (g_u0, g_u1c) = q4::mul_vjp(u0, q4::conj(u1), g_r1);
-                        let (g_u1, g_u2c) = q4::mul_vjp(u1, q4::conj(u2), g_r2);
-                        let g_u1c = q4::conj(g_u1c);
-                        add_to(&mut rows[rw[0]], 7, &g_u0);
-                        add_to(&mut rows[rw[1]], 7, &[0, 1, 2, 3].map(|c| g_u1[c] + g_u1c[c]));
-                        add_to(&mut rows[rw[2]], 7, &q4::conj(g_u2c));
-                    }
-                    MotionForm::Release => {
-                        let (q0, q1, q2) = (track.q[ix[0]], track.q[ix[1]], track.q[ix[2]]);
-                        let dq = [0, 1, 2, 3].map(|c| q0[c] - 2.0 * q1[c] + q2[c]);
-                        let (lp, lq) = (norm3(d), q4::norm(dq));
-                        v += lp + lq;
-                        if lp > 0.0 {
-                            let gd = d.map(|x| scale * x / lp);
-                            add_to(&mut rows[rw[0]], 0, &gd);
-                            add_to(&mut rows[rw[1]], 0, &gd.map(|x| -2.0 * x));
-                            add_to(&mut rows[rw[2]], 0, &gd);
-                        }
-                        if lq > 0.0 {
-                            let gq = dq.map(|x| scale * x / lq);
-                            add_to(&mut rows[rw[0]], 3, &gq);
-                            add_to(&mut rows[rw[1]], 3, &gq.map(|x| -2.0 * x));
-                            add_to(&mut rows[rw[2]], 3, &gq);
-                        }
-                    }
+                let (q0, q1, q2) = (track.q[ix[0]], track.q[ix[1]], track.q[ix[2]]);
+                let dq = [0, 1, 2, 3].map(|c| q0[c] - 2.0 * q1[c] + q2[c]);
+                let (lp, lq) = (norm3(d), q4::norm(dq));
+                v += lp + lq;
+                if lp > 0.0 {
+                    let gd = d.map(|x| scale * x / lp);
+                    add_to(&mut rows[rw[0]], 0, &gd);
+                    add_to(&mut rows[rw[1]], 0, &gd.map(|x| -2.0 * x));
+                    add_to(&mut rows[rw[2]], 0, &gd);
+                }
+                if lq > 0.0 {
+                    let gq = dq.map(|x| scale * x / lq);
+                    add_to(&mut rows[rw[0]], 3, &gq);
+                    add_to(&mut rows[rw[1]], 3, &gq.map(|x| -2.0 * x));
+                    add_to(&mut rows[rw[2]], 3, &gq);
                 }
             }
         }
@@ -795,8 +849,8 @@ mod tests {
         v += relative_rotation(tr, e, 2, 0.5, 1.0, &mut g, Some(&mut ge));
         v += isometry(tr, e, rest, 0.4, 1.0, &mut g, Some(&mut ge));
         for form in [MotionForm::Paper, MotionForm::Release] {
-            v += velocity(tr, form, 0.6, 1.0, &mut g);
-            v += acceleration(tr, form, 0.8, 1.0, &mut g);
+            let [a, b] = smoothness(tr, form, (0.6, 1.0), (0.8, 1.0), &mut g);
+            v += a + b;
         }
         (v, g, ge)
     }
@@ -852,6 +906,35 @@ mod tests {
         assert!(fails.is_empty(), "{}", fails.join("\n"));
     }
 
+    /// The paper form's values are the documented sums, evaluated directly.
+    #[test]
+    fn paper_smoothness_values_are_the_documented_sums() {
+        let (tr, ..) = case(3, 20, 4);
+        let mut g = TrackGrad::zeros(&tr);
+        let got = smoothness(&tr, MotionForm::Paper, (0.5, 1.0), (0.25, 1.0), &mut g);
+        let u = |t: usize, k: usize| tr.u[t * tr.m + k];
+        let p = |t: usize, k: usize| tr.p[t * tr.m + k];
+        let dev = |r: Q| {
+            let r = if r[0] < 0.0 { r.map(|x| -x) } else { r };
+            (r[0] - 1.0).abs() + r[1].abs() + r[2].abs() + r[3].abs()
+        };
+        let rel = |t: usize, k: usize| q4::mul(u(t - 1, k), q4::conj(u(t, k)));
+        let (mut v, mut a) = (0.0, 0.0);
+        for k in 0..tr.m {
+            for t in 1..tr.frames {
+                v += (0..3).map(|c| (p(t - 1, k)[c] - p(t, k)[c]).abs()).sum::<f64>();
+                v += dev(rel(t, k));
+                if t >= 2 {
+                    let d = |c: usize| p(t - 2, k)[c] - 2.0 * p(t - 1, k)[c] + p(t, k)[c];
+                    a += (0..3).map(|c| d(c).abs()).sum::<f64>();
+                    a += dev(q4::mul(rel(t - 1, k), q4::conj(rel(t, k))));
+                }
+            }
+        }
+        assert!((got[0] - 0.5 * v).abs() < 1e-12 * (1.0 + v), "{got:?} vs {v}");
+        assert!((got[1] - 0.25 * a).abs() < 1e-12 * (1.0 + a), "{got:?} vs {a}");
+    }
+
     #[test]
     fn streamed_frame_blocks_equal_the_whole_track() {
         let (t, m) = (23, 6);
@@ -871,8 +954,8 @@ mod tests {
                 rigidity(tr, e, 3, 0.2, 0.7, g, None),
                 relative_rotation(tr, e, 2, 0.5, 1.0, g, None),
                 isometry(tr, e, &rest, 0.4, 1.0, g, None),
-                velocity(tr, MotionForm::Paper, 1.0, 1.0, g),
-                acceleration(tr, MotionForm::Release, 0.1, 1.0, g),
+                smoothness(tr, MotionForm::Paper, (1.0, 1.0), (0.3, 0.5), g)[1],
+                smoothness(tr, MotionForm::Release, (0.2, 1.0), (0.1, 1.0), g)[0],
             ]
         };
         let whole = Track::gather(&poses, &nodes);
@@ -880,9 +963,10 @@ mod tests {
         let want = terms(&whole, &mut g);
         let mut want_g = PoseGrads::zeros(t, n);
         g.scatter(&whole, &nodes, n, &mut want_g);
-        // blocks of 4 frames plus 3 frames of context
+        // blocks of 4 frames plus 3 frames of context, waves of at most 3 blocks
         let mut got_g = PoseGrads::zeros(t, n);
-        let got = stream_frames_in(&poses, &nodes, 3, 4 * m, &mut got_g, terms);
+        let layout = (4 * m, 3 * 7 * m);
+        let got = stream_frames_in(&poses, &nodes, 3, layout, &mut got_g, terms);
         for (a, b) in got.iter().zip(&want) {
             assert!((a - b).abs() < 1e-9 * (1.0 + b.abs()), "{got:?} vs {want:?}");
         }
@@ -890,6 +974,14 @@ mod tests {
         assert!(close(got_g.position.as_flattened(), want_g.position.as_flattened()));
         assert!(close(got_g.rotation.as_flattened(), want_g.rotation.as_flattened()));
         assert!(want_g.position[7][0] != 0.0, "gradients reach the poses");
+        // 6 blocks in waves of 3 blocks (1 or 3 threads) or 2 (2 threads): the same bits.
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut g = PoseGrads::zeros(t, n);
+            let v = pool.install(|| stream_frames_in(&poses, &nodes, 3, layout, &mut g, terms));
+            assert_eq!(v.map(f64::to_bits), got.map(f64::to_bits), "{threads} threads");
+            assert_eq!(g, got_g, "{threads} threads");
+        }
     }
 
     #[test]

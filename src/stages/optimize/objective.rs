@@ -107,11 +107,13 @@ impl KnnMotion {
         let paper = MotionForm::Paper;
         let [iso, rigid, vel, acc] =
             motion::stream_frames(poses, &self.nodes, 2, grads, |tr, g| {
+                let [vel, acc] =
+                    motion::smoothness(tr, paper, (vel_norm, 0.01), (acc_norm, 0.01), g);
                 [
                     motion::isometry(tr, es, &self.rest, iso_norm, 1.0, g, None),
                     motion::rigidity(tr, es, 1, rigid_norm, 1.0, g, None),
-                    motion::velocity(tr, paper, vel_norm, 0.01, g),
-                    motion::acceleration(tr, paper, acc_norm, 0.01, g),
+                    vel,
+                    acc,
                 ]
             });
         vec![
@@ -133,12 +135,7 @@ pub fn build_graph(
 ) -> anyhow::Result<GraphObjective> {
     let (keys, edges) = trained_graph(state, &src.keys, edges);
     let (nt, n, n_in) = (state.frames(), state.n(), src.row.len());
-    let mut initial = Poses {
-        frames: nt,
-        n,
-        position: Vec::with_capacity(nt * n),
-        rotation: Vec::with_capacity(nt * n),
-    };
+    let mut initial = Poses::with_capacity(nt, n);
     let mut u = Vec::with_capacity(nt * n);
     let rows: Vec<usize> = state.origin.iter().map(|o| src.row[o]).collect();
     for t in 0..nt {

@@ -27,6 +27,17 @@ impl Poses {
         }
     }
 
+    /// Poses of `n` Gaussians with no frame yet and room for `frames` frames: push each
+    /// frame's `n` positions and rotations in frame order.
+    pub fn with_capacity(frames: usize, n: usize) -> Self {
+        Self {
+            frames,
+            n,
+            position: Vec::with_capacity(frames * n),
+            rotation: Vec::with_capacity(frames * n),
+        }
+    }
+
     /// Flat index of Gaussian `i` at frame `t`.
     #[inline]
     pub fn idx(&self, t: usize, i: usize) -> usize {

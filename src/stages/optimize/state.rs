@@ -90,12 +90,7 @@ impl TrainState {
         let rows: Vec<usize> = (0..g.len()).filter(|&i| keep.is_none_or(|k| k[i])).collect();
         let t_count = model.num_frames();
         let n = rows.len();
-        let mut poses = Poses {
-            frames: t_count,
-            n,
-            position: Vec::with_capacity(t_count * n),
-            rotation: Vec::with_capacity(t_count * n),
-        };
+        let mut poses = Poses::with_capacity(t_count, n);
         for t in 0..t_count {
             let f = model.frame(t)?;
             poses.position.extend(rows.iter().map(|&i| f.position[i]));
@@ -187,12 +182,7 @@ impl TrainState {
     pub fn gather(&self, rows: &[usize], ids: Vec<u32>) -> TrainState {
         let (n, nt) = (self.n(), self.frames());
         let k3 = self.sh_rest.len() / n.max(1);
-        let mut poses = Poses {
-            frames: nt,
-            n: rows.len(),
-            position: Vec::with_capacity(nt * rows.len()),
-            rotation: Vec::with_capacity(nt * rows.len()),
-        };
+        let mut poses = Poses::with_capacity(nt, rows.len());
         for t in 0..nt {
             poses.position.extend(rows.iter().map(|&i| self.poses.position[t * n + i]));
             poses.rotation.extend(rows.iter().map(|&i| self.poses.rotation[t * n + i]));

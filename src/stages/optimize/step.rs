@@ -14,6 +14,7 @@ use super::image_loss::track::{
 };
 use super::image_loss::{FrameTargets, ImageLossWeights, TrackForm, TrackSet, rgb_loss};
 use super::state::{StateGrads, TrainState, sigmoid};
+use super::timing::PhaseTimes;
 use crate::model::Model;
 use crate::render::{
     ColorSource, Cutoff, DifferentiableRenderer, RenderCamera, RenderSettings, ShFrame, SplatInputs,
@@ -163,7 +164,8 @@ pub struct ImageStep {
 }
 
 /// L_rgb and its gradients over the batch frames `batch` (frame indices, in order), rendered
-/// by `renderer` (the CPU, or the GPU that `--device` names).
+/// by `renderer` (the CPU, or the GPU that `--device` names); each phase's wall time is
+/// added to `timer`.
 pub fn image_step<R: DifferentiableRenderer>(
     renderer: &R,
     state: &TrainState,
@@ -171,6 +173,7 @@ pub fn image_step<R: DifferentiableRenderer>(
     batch: &[usize],
     weights: &ImageLossWeights,
     settings: &RenderSettings,
+    timer: &mut PhaseTimes,
 ) -> anyhow::Result<ImageStep> {
     let n = state.n();
     let scales = state.scales();
@@ -196,11 +199,13 @@ pub fn image_step<R: DifferentiableRenderer>(
         // features from this frame, Shape of Motion's scheme).
         let target = batch[(j + 1) % batch.len()];
         let target_cam = views.training_camera(target);
-        let tracks = if weights.track > 0.0 && target != t {
-            views.tracks(t, target, weights.track_form)?
-        } else {
-            Vec::new()
-        };
+        let tracks = timer.time("load ground truth", || {
+            if weights.track > 0.0 && target != t {
+                views.tracks(t, target, weights.track_form)
+            } else {
+                Ok(Vec::new())
+            }
+        })?;
         let nf = if tracks.is_empty() { 0 } else { 3 };
         let mut features = vec![0.0f32; n * nf];
         if nf > 0 {
@@ -215,10 +220,12 @@ pub fn image_step<R: DifferentiableRenderer>(
             features: &features,
             num_features: nf,
         };
-        let (out, saved) = renderer
-            .render_with_saved(&cam, &inputs, settings, Cutoff::Hard)
+        let (out, saved) = timer
+            .time("render forward", || {
+                renderer.render_with_saved(&cam, &inputs, settings, Cutoff::Hard)
+            })
             .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
-        let truth = views.truth(t, settings.background)?;
+        let truth = timer.time("load ground truth", || views.truth(t, settings.background))?;
         let sets = [TrackSet { block: 0, camera: &target_cam, tracks: &tracks }];
         let targets = FrameTargets {
             rgb: &truth.rgb,
@@ -227,17 +234,19 @@ pub fn image_step<R: DifferentiableRenderer>(
             depth: truth.depth.as_deref(),
             tracks: if nf > 0 { &sets } else { &[] },
         };
-        let (frame_terms, v) =
-            rgb_loss(&out, &targets, weights).map_err(|e| anyhow::anyhow!("frame {t}: {e}"))?;
+        let (frame_terms, v) = timer
+            .time("image loss", || rgb_loss(&out, &targets, weights))
+            .map_err(|e| anyhow::anyhow!("frame {t}: {e}"))?;
         for (name, value) in frame_terms {
             match terms.iter_mut().find(|(k, _)| *k == name) {
                 Some((_, s)) => *s += value / batch.len() as f64,
                 None => terms.push((name, value / batch.len() as f64)),
             }
         }
-        let g = renderer
-            .backward(&cam, &inputs, settings, &saved, &v)
+        let g = timer
+            .time("render backward", || renderer.backward(&cam, &inputs, settings, &saved, &v))
             .map_err(|e| anyhow::anyhow!("frame {t}: backward: {e}"))?;
+        let chain = timer.start();
         let (half_w, half_h) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);
         let k3 = state.sh_rest.len() / n.max(1);
         for i in 0..n {
@@ -270,6 +279,7 @@ pub fn image_step<R: DifferentiableRenderer>(
             add_target_position_grads(at, &scaled, nf, 0, &target_cam);
         }
         debug_assert_eq!(grads.sh_rest.len(), n * k3);
+        timer.stop("chain to parameters", chain);
     }
     Ok(ImageStep { terms, grads, screen_grad, screen_count })
 }

@@ -19,6 +19,7 @@ use super::params::{OptimizeParams, OptimizeSettings, Recipe};
 use super::poses::Poses;
 use super::state::TrainState;
 use super::step::{TrainingViews, image_step};
+use super::timing::PhaseTimes;
 use crate::context::Context;
 use crate::model::Model;
 use crate::render::RenderSettings;
@@ -147,12 +148,7 @@ fn graph_source(
     g: &GraphInputs,
 ) -> anyhow::Result<GraphSource> {
     let (nt, n) = (model.num_frames(), model.gaussians.len());
-    let mut initial = Poses {
-        frames: nt,
-        n,
-        position: Vec::with_capacity(nt * n),
-        rotation: Vec::with_capacity(nt * n),
-    };
+    let mut initial = Poses::with_capacity(nt, n);
     for t in 0..nt {
         let f = model.frame(t)?;
         initial.position.extend(f.position);
@@ -235,6 +231,12 @@ fn new_adam(state: &TrainState, s: &OptimizeSettings) -> Adam {
 
 /// `usplat4d optimize`.
 pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
+    run_timed(p, ctx).map(|_| ())
+}
+
+/// [`run`], returning the wall time of each phase summed over the steps this run took
+/// after its first (the first is warm-up).
+pub fn run_timed(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<PhaseTimes> {
     let _span = tracing::info_span!("optimize").entered();
     let s = p.settings()?;
     let model = Model::load(&p.model)?;
@@ -317,23 +319,33 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     let renderer = crate::stages::device::renderer(ctx)?;
     let bar = ctx.progress(s.steps as u64, "optimize");
     bar.set_position(c.step as u64);
+    let first_step = c.step;
+    let mut times = PhaseTimes::default();
     while c.step < s.steps {
         let step = c.step;
         let started = Instant::now();
+        let mut timer = PhaseTimes::default();
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
-        let img = image_step(&renderer, &c.state, &views, &batch, &s.image, &render)?;
+        let img = image_step(&renderer, &c.state, &views, &batch, &s.image, &render, &mut timer)?;
         let mut grads = img.grads;
         let mut terms: Vec<(String, f64)> = Vec::new();
         terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
         let extra = match &mut objective {
-            Objective::Knn(k) => k.evaluate(&c.state.poses, &mut grads.poses),
-            Objective::Graph(o) => {
-                o.evaluate(&c.state.poses, &batch, mix(s.seed ^ step as u64), &mut grads.poses)
+            Objective::Knn(k) => {
+                timer.time("kNN motion terms", || k.evaluate(&c.state.poses, &mut grads.poses))
             }
+            Objective::Graph(o) => o.evaluate(
+                &c.state.poses,
+                &batch,
+                mix(s.seed ^ step as u64),
+                &mut grads.poses,
+                &mut timer,
+            ),
         };
         terms.extend(extra.iter().map(|(k, v)| (k.to_string(), *v)));
         let loss: f64 = terms.iter().map(|(_, v)| v).sum();
-        c.state.tie_static(&mut grads.poses);
+        timer.time("tie static poses", || c.state.tie_static(&mut grads.poses));
+        let adam_started = timer.start();
         c.adam.begin_step();
         let st = &mut c.state;
         c.adam.update(0, st.poses.position.as_flattened_mut(), grads.poses.position.as_flattened());
@@ -347,6 +359,8 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
                 c.adam.update(6 + k, slice.values, slice.grads);
             }
         }
+        timer.stop("Adam", adam_started);
+        let density_started = timer.start();
         c.density.add(&img.screen_grad, &img.screen_count);
         if s.density.active(step, s.steps) {
             let protected: Vec<bool> =
@@ -382,6 +396,10 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         }
         if s.density.reset(step, s.steps) {
             density::reset_opacity(&mut c.state, &mut c.adam);
+        }
+        timer.stop("density control", density_started);
+        if step > first_step {
+            times.merge(&timer);
         }
         c.log.push(LogRow {
             step,
@@ -419,7 +437,7 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     if dir.exists() {
         std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
     }
-    Ok(())
+    Ok(times)
 }
 
 /// The trained model, the training log, and (usplat4d) the roles and graph of the trained

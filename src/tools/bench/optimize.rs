@@ -2,7 +2,10 @@
 //! and peak resident memory of `optimize` on a given model and scene (e.g. the Fox scene made
 //! by `synth --width 256 --height 256 --gaussians 20000`). Runs the real stage into a
 //! temporary directory without checkpoints or density control and reads the per-step wall
-//! times from its training log; the first step (warm-up) is left out of the mean. Peak memory
+//! times from its training log; the first step (warm-up) is left out of the mean. A second
+//! table splits the mean step into its phases (render forward and backward, L_rgb, the
+//! motion or graph terms, Adam, ...; [`crate::stages::optimize::timing`]), in wall time
+//! and in CPU time of all threads (which a busy machine inflates far less). Peak memory
 //! is the process's VmHWM. The global `--device` picks the renderer (`--device gpu` times the
 //! GPU renderer, software adapters included).
 
@@ -96,10 +99,11 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         percent_dense: None,
         prune_opacity: None,
     };
-    crate::stages::optimize::run(&params, ctx)?;
+    let phases = crate::stages::optimize::train::run_timed(&params, ctx)?;
     let log = crate::tables::training_log::read(&out.join("training_log.parquet"))?;
     let timed: Vec<f64> = log.iter().skip(1).map(|r| r.seconds).collect();
-    let ms = 1e3 * timed.iter().sum::<f64>() / timed.len().max(1) as f64;
+    let per_step = 1e3 / timed.len().max(1) as f64;
+    let ms = per_step * timed.iter().sum::<f64>();
     let model = crate::model::Model::load(&out)?;
     let rss = crate::tools::bench::graph::peak_rss_bytes().map_or(f64::NAN, |b| b as f64 / 1e9);
     let device = crate::stages::device::renderer(ctx)?.tag();
@@ -114,5 +118,23 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         p.batch_frames,
         rayon::current_num_threads()
     );
+    println!();
+    println!("| phase | wall ms/step | share | CPU ms/step |");
+    println!("|---|---|---|---|");
+    let (mut wall, mut cpu) = (0.0, Some(0.0));
+    for (name, w, c) in &phases.totals {
+        let w = per_step * w.as_secs_f64();
+        let c = c.map(|c| per_step * c.as_secs_f64());
+        wall += w;
+        cpu = cpu.zip(c).map(|(a, b)| a + b);
+        println!("| {name} | {w:.1} | {:.0}% | {} |", 100.0 * w / ms, ms_or_dash(c));
+    }
+    let rest = ms - wall;
+    println!("| other (batch draw, buffers, log) | {rest:.1} | {:.0}% | |", 100.0 * rest / ms);
+    println!("| all phases | {wall:.1} | {:.0}% | {} |", 100.0 * wall / ms, ms_or_dash(cpu));
     Ok(())
+}
+
+fn ms_or_dash(v: Option<f64>) -> String {
+    v.map_or("–".into(), |v| format!("{v:.1}"))
 }

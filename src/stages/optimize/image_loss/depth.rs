@@ -21,6 +21,8 @@
 //! `dL/dd_j = e_j/s − (F/(s|R|))·σ_j`, plus `−E/s + (F/(s|R|))·Σσ` at the median pixel.
 //! Fewer than 2 supervised pixels, or a constant map (s = 0), give 0 and no gradient.
 
+use crate::stages::optimize::sign;
+
 /// The lower bound on α when normalising the rendered depth.
 pub const ALPHA_EPS: f32 = 1e-6;
 
@@ -103,32 +105,11 @@ fn ssi_l1(pred: &[f64], target: &[f64]) -> Option<(f64, Vec<f64>)> {
     let (_, tg, sg) = normalisation(target)?;
     let inv_n = 1.0 / pred.len() as f64;
     let norm: Vec<f64> = pred.iter().map(|d| (d - t) / s).collect();
-    let e: Vec<f64> = norm
-        .iter()
-        .zip(target)
-        .map(|(n, g)| {
-            let r = n - (g - tg) / sg;
-            if r > 0.0 {
-                inv_n
-            } else if r < 0.0 {
-                -inv_n
-            } else {
-                0.0
-            }
-        })
-        .collect();
+    let e: Vec<f64> =
+        norm.iter().zip(target).map(|(n, g)| inv_n * sign(n - (g - tg) / sg)).collect();
     let loss = norm.iter().zip(target).map(|(n, g)| (n - (g - tg) / sg).abs()).sum::<f64>() * inv_n;
     let big_e: f64 = e.iter().sum();
     let big_f: f64 = e.iter().zip(&norm).map(|(e, n)| e * n).sum();
-    let sign = |x: f64| {
-        if x > 0.0 {
-            1.0
-        } else if x < 0.0 {
-            -1.0
-        } else {
-            0.0
-        }
-    };
     let sum_sigma: f64 = pred.iter().map(|d| sign(d - t)).sum();
     let c = big_f / s * inv_n;
     let mut grad: Vec<f64> = e.iter().zip(pred).map(|(e, d)| e / s - c * sign(d - t)).collect();

@@ -25,6 +25,7 @@
 use glam::{Mat3, Vec3};
 
 use crate::render::RenderCamera;
+use crate::stages::optimize::sign;
 use crate::tables::tracks_2d::Tracks2dFrame;
 
 /// Rendered camera-space Z at or below which a track is skipped.
@@ -227,16 +228,6 @@ pub fn track_with_grad(
         }
     }
     loss
-}
-
-fn sign(x: f64) -> f64 {
-    if x > 0.0 {
-        1.0
-    } else if x < 0.0 {
-        -1.0
-    } else {
-        0.0
-    }
 }
 
 /// The `q` quantile of `v` with linear interpolation (torch.quantile's default).

@@ -1,0 +1,91 @@
+//! Time per phase of the optimisation steps (image loading, render forward and backward,
+//! L_rgb, the motion or graph terms, Adam, density control), summed over steps, for
+//! `usplat4d bench optimize`'s breakdown: wall time, and CPU time of all the process's
+//! threads (Linux `/proc/self/task/*/schedstat`, nanoseconds; absent elsewhere), which a
+//! busy machine inflates far less than wall time. Timing reads clocks around each phase
+//! and changes nothing the phases compute.
+
+use std::time::{Duration, Instant};
+
+/// Per-phase totals, phases in the order first seen.
+#[derive(Debug, Clone, Default)]
+pub struct PhaseTimes {
+    /// `(phase, wall time, CPU time)`; CPU time is `None` where it cannot be read.
+    pub totals: Vec<(&'static str, Duration, Option<Duration>)>,
+}
+
+/// The clocks at the start of a phase.
+#[derive(Debug, Clone, Copy)]
+pub struct Mark {
+    wall: Instant,
+    cpu: Option<u64>,
+}
+
+/// CPU time of every thread of this process so far, in nanoseconds.
+fn cpu_ns() -> Option<u64> {
+    let mut total = 0u64;
+    for task in std::fs::read_dir("/proc/self/task").ok()? {
+        let text = std::fs::read_to_string(task.ok()?.path().join("schedstat")).ok()?;
+        total += text.split_whitespace().next()?.parse::<u64>().ok()?;
+    }
+    Some(total)
+}
+
+impl PhaseTimes {
+    /// The clocks now.
+    pub fn start(&self) -> Mark {
+        Mark { wall: Instant::now(), cpu: cpu_ns() }
+    }
+
+    /// Add the time since `mark` to `phase`.
+    pub fn stop(&mut self, phase: &'static str, mark: Mark) {
+        let cpu = mark.cpu.zip(cpu_ns()).map(|(a, b)| Duration::from_nanos(b.saturating_sub(a)));
+        self.add(phase, mark.wall.elapsed(), cpu);
+    }
+
+    /// Run `f`, adding its time to `phase`.
+    pub fn time<R>(&mut self, phase: &'static str, f: impl FnOnce() -> R) -> R {
+        let mark = self.start();
+        let r = f();
+        self.stop(phase, mark);
+        r
+    }
+
+    fn add(&mut self, phase: &'static str, wall: Duration, cpu: Option<Duration>) {
+        match self.totals.iter_mut().find(|(k, ..)| *k == phase) {
+            Some((_, w, c)) => {
+                *w += wall;
+                *c = c.zip(cpu).map(|(a, b)| a + b);
+            }
+            None => self.totals.push((phase, wall, cpu)),
+        }
+    }
+
+    /// Add every phase of `other`.
+    pub fn merge(&mut self, other: &PhaseTimes) {
+        for &(k, w, c) in &other.totals {
+            self.add(k, w, c);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn phases_accumulate_in_first_seen_order() {
+        let mut t = PhaseTimes::default();
+        t.add("b", Duration::from_millis(2), Some(Duration::from_millis(1)));
+        assert_eq!(t.time("a", || (0..200_000u64).map(|x| x ^ 3).sum::<u64>()), 19_999_900_000);
+        t.add("b", Duration::from_millis(3), Some(Duration::from_millis(4)));
+        let mut u = PhaseTimes::default();
+        u.merge(&t);
+        assert_eq!(u.totals.iter().map(|x| x.0).collect::<Vec<_>>(), ["b", "a"]);
+        assert_eq!(u.totals[0].1, Duration::from_millis(5));
+        assert_eq!(u.totals[0].2, Some(Duration::from_millis(5)));
+        if cfg!(target_os = "linux") {
+            assert!(u.totals[1].2.is_some(), "CPU time is read on Linux");
+        }
+    }
+}
