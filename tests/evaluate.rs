@@ -325,6 +325,17 @@ fn tracking_scores_oracle_and_offset_model() {
     eprintln!("tracking scores: oracle {good}\noffset {bad}");
     assert!(bad_epe > epe + 0.2 * diag && bad_pck10 < 0.2, "offset: {bad} oracle: {good}");
 
+    // The training split scores its images and tracks the same way.
+    let train_renders = d.join("RT");
+    let mut args = crate::util::render_eval_args(&oracle, &scene, &train_renders);
+    args[6] = "train";
+    ok(run(&args));
+    let out = d.join("ET");
+    ok(evaluate(&train_renders, &scene, &out, &["--split", "train", "--model", s(&oracle)]));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(json["tracking"], good, "{json}");
+
     // Without --model the summary has no tracking entry.
     ok(evaluate(&renders, &scene, &d.join("E3"), &[]));
     let plain = std::fs::read_to_string(d.join("E3/summary.json")).unwrap();

@@ -125,6 +125,12 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
     };
     let _span = tracing::info_span!("evaluate").entered();
     let mut scene = Scene::load(scene_dir)?;
+    // Tracking renders the training cameras' frames: score it before the split is applied,
+    // and before any output is written, so a failure leaves no partial evaluation.
+    let tracking = match &p.model {
+        Some(model) => Some(tracks::evaluate_model(&scene, model, ctx)?),
+        None => None,
+    };
     if p.split == EvalSplit::Train {
         // The training views, scored like eval views (offset 0: in no view range).
         scene.cameras.retain(|c| c.split == crate::scene::Split::Train);
@@ -153,8 +159,7 @@ pub fn run(p: &EvaluateParams, ctx: &Context) -> anyhow::Result<()> {
         &Provenance::new("evaluate", p),
     )?;
     let mut summary = summarise(&rows);
-    if let Some(model) = &p.model {
-        let scores = tracks::evaluate_model(&scene, model, ctx)?;
+    if let Some(scores) = tracking {
         (summary.tracking, summary.pck_t) = (scores.tracking, scores.pck_t);
     }
     let json = serde_json::to_string_pretty(&summary).context("serialising the summary")?;
