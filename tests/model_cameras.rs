@@ -46,11 +46,8 @@ fn moved_model(dir: &Dir, sim: &Similarity) {
         .collect();
     let out = dir.join("moved");
     Model::save(&out, &g, frames.into_iter().map(Ok), &Provenance::default()).unwrap();
-    let cams: Vec<ModelCamera> = scene
-        .train_by_frame()
-        .iter()
-        .map(|c| sim.camera_to_model(c))
-        .collect();
+    let cams: Vec<ModelCamera> =
+        scene.train_by_frame().iter().map(|c| sim.camera_to_model(c)).collect();
     Model::save_cameras(&out, &cams, sim, &Provenance::default()).unwrap();
 }
 

@@ -202,8 +202,7 @@ mod tests {
         let v = [0.01f32, -0.02, 0.005];
         let velocity = |frames: usize, n: usize| {
             let mut rng = crate::util::rng::Rng::new(3);
-            let p0: Vec<[f32; 3]> =
-                (0..n).map(|_| [0; 3].map(|_| rng.uniform() as f32)).collect();
+            let p0: Vec<[f32; 3]> = (0..n).map(|_| [0; 3].map(|_| rng.uniform() as f32)).collect();
             let mut poses = Poses::identity(frames, n);
             for t in 0..frames {
                 for (i, p) in p0.iter().enumerate() {
