@@ -296,7 +296,7 @@ mod tests {
 
     #[test]
     fn params_defaults_and_unknown_options() {
-        let parse = crate::stages::params::parse_args::<ImportDycheckParams>;
+        let parse = crate::util::parse_args::<ImportDycheckParams>;
         let p = parse(&["--data", "seq", "--out", "scene"]).unwrap();
         assert_eq!((p.factor, p.world, p.cameras_only), (2, World::Source, false));
         let p = parse(&["--data", "s", "--out", "o", "--world", "dycheck", "--cameras-only"]);

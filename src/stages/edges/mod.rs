@@ -655,7 +655,8 @@ mod tests {
     use crate::stages::graph::search::{argmin_sum_brute, knn_max_brute};
     use crate::stages::graph::tracks::synthetic_tracks;
     use crate::stages::keynodes::{KeynodeSettings, select};
-    use crate::stages::params::{Profile, parse_args};
+    use crate::stages::params::Profile;
+    use crate::util::parse_args;
 
     fn setup(profile: Profile) -> (Tracks, Vec<DMat3>, KeyNodes) {
         let (tracks, rotations, _) = synthetic_tracks(1500, 16, 3, 9);

@@ -713,7 +713,8 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stages::params::{Profile, parse_args};
+    use crate::stages::params::Profile;
+    use crate::util::parse_args;
 
     /// N Gaussians on a line (x = i) for T frames, u given per (i, t).
     fn tracks(n: usize, nt: usize, u: impl Fn(usize, usize) -> f32) -> Tracks {

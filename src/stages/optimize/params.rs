@@ -409,7 +409,7 @@ mod tests {
         let args = ["--model", "m", "--scene", "s", "--out", "o", "--steps", "10"];
         let parse = |extra: &[&str]| {
             let all: Vec<&str> = args.iter().chain(extra).copied().collect();
-            crate::stages::params::parse_args::<OptimizeParams>(&all).unwrap().settings()
+            crate::util::parse_args::<OptimizeParams>(&all).unwrap().settings()
         };
         let s =
             parse(&["--recipe", "vanilla", "--profile", "release", "--lambda-graph", "3"]).unwrap();
