@@ -2,16 +2,19 @@
 //! L_rgb, the motion or graph terms, Adam, density control), summed over steps, for
 //! `usplat4d bench optimize`'s breakdown: wall time, and CPU time of all the process's
 //! threads (Linux `/proc/self/task/*/schedstat`, nanoseconds; absent elsewhere), which a
-//! busy machine inflates far less than wall time. Timing reads clocks around each phase
-//! and changes nothing the phases compute.
+//! busy machine inflates far less than wall time, read only when asked for
+//! ([`PhaseTimes::with_cpu_time`]) since it costs file reads per phase. Timing reads clocks
+//! around each phase and changes nothing the phases compute.
 
 use std::time::{Duration, Instant};
 
 /// Per-phase totals, phases in the order first seen.
 #[derive(Debug, Clone, Default)]
 pub struct PhaseTimes {
-    /// `(phase, wall time, CPU time)`; CPU time is `None` where it cannot be read.
+    /// `(phase, wall time, CPU time)`; CPU time is `None` where it is not read or cannot be.
     pub totals: Vec<(&'static str, Duration, Option<Duration>)>,
+    /// Whether phases also read the process's CPU time.
+    cpu: bool,
 }
 
 /// The clocks at the start of a phase.
@@ -32,14 +35,19 @@ fn cpu_ns() -> Option<u64> {
 }
 
 impl PhaseTimes {
+    /// Totals that also hold the CPU time of each phase (wall time only by default).
+    pub fn with_cpu_time() -> Self {
+        PhaseTimes { totals: Vec::new(), cpu: true }
+    }
+
     /// The clocks now.
     pub fn start(&self) -> Mark {
-        Mark { wall: Instant::now(), cpu: cpu_ns() }
+        Mark { wall: Instant::now(), cpu: if self.cpu { cpu_ns() } else { None } }
     }
 
     /// Add the time since `mark` to `phase`.
     pub fn stop(&mut self, phase: &'static str, mark: Mark) {
-        let cpu = mark.cpu.zip(cpu_ns()).map(|(a, b)| Duration::from_nanos(b.saturating_sub(a)));
+        let cpu = mark.cpu.and_then(|a| Some(Duration::from_nanos(cpu_ns()?.saturating_sub(a))));
         self.add(phase, mark.wall.elapsed(), cpu);
     }
 
@@ -75,7 +83,7 @@ mod tests {
 
     #[test]
     fn phases_accumulate_in_first_seen_order() {
-        let mut t = PhaseTimes::default();
+        let mut t = PhaseTimes::with_cpu_time();
         t.add("b", Duration::from_millis(2), Some(Duration::from_millis(1)));
         assert_eq!(t.time("a", || (0..200_000u64).map(|x| x ^ 3).sum::<u64>()), 19_999_900_000);
         t.add("b", Duration::from_millis(3), Some(Duration::from_millis(4)));

@@ -231,12 +231,12 @@ fn new_adam(state: &TrainState, s: &OptimizeSettings) -> Adam {
 
 /// `usplat4d optimize`.
 pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
-    run_timed(p, ctx).map(|_| ())
+    run_timed(p, ctx, false).map(|_| ())
 }
 
 /// [`run`], returning the wall time of each phase summed over the steps this run took
-/// after its first (the first is warm-up).
-pub fn run_timed(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<PhaseTimes> {
+/// after its first (the first is warm-up), and its CPU time with `cpu_time`.
+pub fn run_timed(p: &OptimizeParams, ctx: &Context, cpu_time: bool) -> anyhow::Result<PhaseTimes> {
     let _span = tracing::info_span!("optimize").entered();
     let s = p.settings()?;
     let model = Model::load(&p.model)?;
@@ -324,7 +324,7 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<PhaseTimes
     while c.step < s.steps {
         let step = c.step;
         let started = Instant::now();
-        let mut timer = PhaseTimes::default();
+        let mut timer = if cpu_time { PhaseTimes::with_cpu_time() } else { PhaseTimes::default() };
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
         let img = image_step(&renderer, &c.state, &views, &batch, &s.image, &render, &mut timer)?;
         let mut grads = img.grads;

@@ -99,7 +99,7 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         percent_dense: None,
         prune_opacity: None,
     };
-    let phases = crate::stages::optimize::train::run_timed(&params, ctx)?;
+    let phases = crate::stages::optimize::train::run_timed(&params, ctx, true)?;
     let log = crate::tables::training_log::read(&out.join("training_log.parquet"))?;
     let timed: Vec<f64> = log.iter().skip(1).map(|r| r.seconds).collect();
     let per_step = 1e3 / timed.len().max(1) as f64;
