@@ -550,9 +550,11 @@ impl GraphObjective {
         let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
         let [lv, la] = self.s.lambda_vel_acc;
         let form = self.s.motion;
-        let mean = self.s.reduction == Reduction::Mean;
-        let norm_form = if mean { MotionForm::Release } else { form };
-        let (nv, na) = motion::smoothness_norms(norm_form, self.frames, all.len());
+        let (nv, na) = if form == MotionForm::Release || self.s.reduction == Reduction::Mean {
+            motion::smoothness_means(self.frames, all.len())
+        } else {
+            (1.0, 1.0)
+        };
         motion::stream_frames(poses, &all, 2, grads, |tr, g| {
             motion::smoothness(tr, form, (nv, lv), (na, la), g)
         })
@@ -589,6 +591,8 @@ impl GraphObjective {
         let ne = kept.len().max(1) as f64;
         let nt = self.frames;
         let km = s.key_motion;
+        // The mean over the kept edges and the frames a term with offset d covers.
+        let mean = |d: usize| 1.0 / (ne * nt.saturating_sub(d).max(1) as f64);
         let mut out = Vec::new();
         match s.motion {
             MotionForm::Paper => {
@@ -596,7 +600,7 @@ impl GraphObjective {
                 // 1/(k|V|) per frame; summed over frames, or their mean.
                 let per = |d: usize| match s.reduction {
                     Reduction::Sum => 1.0 / ne,
-                    Reduction::Mean => 1.0 / (ne * nt.saturating_sub(d).max(1) as f64),
+                    Reduction::Mean => mean(d),
                 };
                 let v =
                     motion::isometry(&track, es, &rest, per(0), km * li, &mut tg, Some(&mut ge));
@@ -615,7 +619,6 @@ impl GraphObjective {
                 out.push(("key_rotation", km * lo * v));
             }
             MotionForm::Release => {
-                let mean = |d: usize| 1.0 / (ne * nt.saturating_sub(d).max(1) as f64);
                 let v = motion::rigidity(&track, es, 1, mean(1), km, &mut tg, Some(&mut ge));
                 out.push(("key_rigidity", km * v));
                 let v =

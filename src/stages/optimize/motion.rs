@@ -241,17 +241,12 @@ fn stream_frames_in<const K: usize>(
     total
 }
 
-/// The norms of the velocity and acceleration of [`smoothness`] for `m` Gaussians over T
-/// `frames`:
-/// 1 for the paper's sums, the release's means.
-pub fn smoothness_norms(form: MotionForm, frames: usize, m: usize) -> (f64, f64) {
-    match form {
-        MotionForm::Paper => (1.0, 1.0),
-        MotionForm::Release => {
-            let per = |d: usize| 1.0 / (frames.saturating_sub(d) * m).max(1) as f64;
-            (per(1), per(2))
-        }
-    }
+/// The norms that make the velocity and acceleration of [`smoothness`] means over `m`
+/// Gaussians and the T − 1 and T − 2 frame steps of T `frames` (the release's means); the
+/// paper's sums use norm 1.
+pub fn smoothness_means(frames: usize, m: usize) -> (f64, f64) {
+    let per = |d: usize| 1.0 / (frames.saturating_sub(d) * m).max(1) as f64;
+    (per(1), per(2))
 }
 
 /// Edges over a track's Gaussians (compact indices `0..m`), `[E]` each. Edges from one source
@@ -608,7 +603,7 @@ fn standardized(r: Q) -> (Q, f64) {
 /// Release: velocity `Σ ‖p_t − p_{t+1}‖²/3 + ‖q_t − q_{t+1}‖²/4`, whose mean over the
 /// components is norm = 1/((T−1)·m), and acceleration `Σ ‖2p_{t−1} − p_{t−2} − p_t‖ +
 /// ‖2q_{t−1} − q_{t−2} − q_t‖` (raw q), a mean with norm = 1/((T−2)·m)
-/// ([`smoothness_norms`]).
+/// ([`smoothness_means`]).
 pub fn smoothness(
     track: &Track,
     form: MotionForm,

@@ -102,8 +102,7 @@ impl KnnMotion {
         let (nt, e) = (poses.frames, self.src.len());
         let per = |terms: usize| 1.0 / terms.max(1) as f64;
         let (iso_norm, rigid_norm) = (per(e * nt), per(e * nt.saturating_sub(1)));
-        let (vel_norm, acc_norm) =
-            motion::smoothness_norms(MotionForm::Release, nt, self.nodes.len());
+        let (vel_norm, acc_norm) = motion::smoothness_means(nt, self.nodes.len());
         let paper = MotionForm::Paper;
         let [iso, rigid, vel, acc] =
             motion::stream_frames(poses, &self.nodes, 2, grads, |tr, g| {
