@@ -328,7 +328,7 @@ fn tracking_scores_oracle_and_offset_model() {
     // The training split scores its images and tracks the same way.
     let train_renders = d.join("RT");
     let mut args = crate::util::render_eval_args(&oracle, &scene, &train_renders);
-    args[6] = "train";
+    args[6] = "train"; // the value of --split
     ok(run(&args));
     let out = d.join("ET");
     ok(evaluate(&train_renders, &scene, &out, &["--split", "train", "--model", s(&oracle)]));
