@@ -18,6 +18,7 @@ use crate::formats::png::Image;
 use crate::formats::{npy, png};
 use crate::render::RenderCamera;
 pub use crate::tables::cameras::{Camera, Split};
+use crate::util::fs::IoError;
 
 /// The render camera of a scene camera (distortion is not rendered; near 0.01, far 1e10).
 impl From<&Camera> for RenderCamera {
@@ -210,7 +211,7 @@ impl Scene {
                     tracks_2d: "tracks_2d.parquet".into(),
                 });
             }
-            Err(cause) => return Err(tables::Error::Io { path, cause }),
+            Err(cause) => return Err(IoError { path, cause }.into()),
         };
         let json: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
             tables::Error::Mismatch { path: path.clone(), msg: format!("not valid JSON: {e}") }

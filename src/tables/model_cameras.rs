@@ -15,6 +15,7 @@ use arrow::datatypes::{DataType, Float64Type, Schema, SchemaRef, UInt32Type};
 use super::cameras::Camera;
 use super::io::{Columns, Table, TableReader, batch, field, fixed_list, write_table};
 use super::{Error, Provenance, Result, validate};
+use crate::util::fs::IoError;
 
 /// Marker type of the `model_cameras` table.
 pub struct ModelCamerasTable;
@@ -202,19 +203,13 @@ impl Similarity {
 
 /// Write `sim` as pretty JSON to `path` atomically.
 pub fn write_similarity(path: &Path, sim: &Similarity) -> Result<()> {
-    let io = |cause| Error::Io { path: path.to_path_buf(), cause };
-    let text = serde_json::to_string_pretty(sim).map_err(|e| io(e.into()))?;
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
-    std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(io)?;
-    tmp.persist(path).map_err(|e| io(e.error))?;
-    Ok(())
+    let text = serde_json::to_string_pretty(sim).map_err(|e| IoError::at(path)(e.into()))?;
+    Ok(crate::util::fs::write_atomic(path, text.as_bytes())?)
 }
 
 /// Read `path` (a [`Similarity`] as JSON), checking s > 0 and finite values.
 pub fn read_similarity(path: &Path) -> Result<Similarity> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|cause| Error::Io { path: path.to_path_buf(), cause })?;
+    let text = std::fs::read_to_string(path).map_err(IoError::at(path))?;
     let bad = |msg: String| Error::Mismatch { path: path.to_path_buf(), msg };
     let sim: Similarity = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
     let finite = sim.rotation.iter().flatten().chain(&sim.translation).all(|x| x.is_finite());

@@ -37,6 +37,7 @@ use crate::context::Context;
 use crate::formats::{self, png::Image};
 use crate::scene::{Camera, Scene, Split};
 use crate::tables::Provenance;
+use crate::util::fs::IoError;
 
 /// Parameters of `usplat4d import dycheck`.
 #[derive(Debug, Clone, clap::Args, serde::Serialize)]
@@ -282,10 +283,9 @@ fn copy_keypoints(seq: &Sequence, out: &Path) -> Result<Option<serde_json::Value
     }
     let skeleton = dir.join(keypoints::SKELETON);
     for f in files.iter().chain(skeleton.is_file().then_some(&skeleton)) {
-        let bytes = std::fs::read(f).map_err(|error| Error::Io { path: f.clone(), error })?;
+        let bytes = std::fs::read(f).map_err(IoError::at(f))?;
         let name = f.file_name().unwrap_or_default();
-        crate::util::fs::write_atomic(&out.join(KEYPOINT_DIR).join(name), &bytes)
-            .map_err(crate::formats::Error::from)?;
+        crate::util::fs::write_atomic(&out.join(KEYPOINT_DIR).join(name), &bytes)?;
     }
     Ok(Some(json!({"dir": KEYPOINT_DIR, "frames": frames})))
 }
