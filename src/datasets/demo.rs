@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use glam::{DMat4, DVec3};
 
 use crate::model::{FrameState, Gaussians, Model};
-use crate::scene::{Camera, Scene, Split};
+use crate::scene::{Camera, Pinhole, Scene, Split};
 use crate::tables::{self, Provenance};
 
 /// Write a hand-made scene and model for tests and demos into `dir/scene` and `dir/model`:
@@ -27,13 +27,15 @@ pub fn write_demo_scene(dir: &Path, frames: u32) -> tables::Result<(PathBuf, Pat
                 frame,
                 camera: name.into(),
                 split,
-                fx: 60.0,
-                fy: 60.0,
-                cx: 40.0,
-                cy: 30.0,
-                width: 80,
-                height: 60,
-                w2c: Camera::w2c_from_mat(w2c),
+                pinhole: Pinhole {
+                    fx: 60.0,
+                    fy: 60.0,
+                    cx: 40.0,
+                    cy: 30.0,
+                    width: 80,
+                    height: 60,
+                    w2c: Camera::w2c_from_mat(w2c),
+                },
                 image_path: format!("rgb/{name}/{frame:05}.png"),
                 depth_path: None,
                 mask_path: None,

@@ -171,7 +171,7 @@ fn copy_images(
         .par_iter()
         .zip(seq.entries.par_iter())
         .map(|(cam, e)| {
-            let (w, h) = (cam.width as usize, cam.height as usize);
+            let (w, h) = cam.pinhole.size();
             let src = existing(rgb_dir.join(format!("{}.png", e.name)), &e.name, e.split)?;
             let img = formats::png::read_png(&src)?;
             check_size(&src, img.width, img.height, cam, p.factor)?;
@@ -217,14 +217,14 @@ fn copy_images(
 
 /// An image size mismatch names the image and the camera size.
 fn check_size(path: &Path, w: usize, h: usize, cam: &Camera, factor: u32) -> Result<()> {
-    if (w, h) == (cam.width as usize, cam.height as usize) {
+    if (w, h) == cam.pinhole.size() {
         return Ok(());
     }
     Err(Error::File {
         path: path.into(),
         msg: format!(
             "image is {w}x{h} but its camera at factor {factor} is {}x{} (W x H)",
-            cam.width, cam.height
+            cam.pinhole.width, cam.pinhole.height
         ),
     })
 }

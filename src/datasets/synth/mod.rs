@@ -731,10 +731,8 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     }
     t2.finish()?;
     bar.finish_and_clear();
-    let (w0, h0) = cams
-        .iter()
-        .find(|c| c.split == Split::Train)
-        .map_or((1, 1), |c| (c.width as usize, c.height as usize));
+    let (w0, h0) =
+        cams.iter().find(|c| c.split == Split::Train).map_or((1, 1), |c| c.pinhole.size());
     let measured = realistic
         .then(|| -> Result<priors::Measured, Error> {
             let (prior, drifting) = priors::track_priors(&exact_tracks, w0, h0, p.seed, &levels);

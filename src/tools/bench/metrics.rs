@@ -12,7 +12,7 @@ use crate::context::Context;
 use crate::formats::png::{Image, write_png};
 use crate::metrics::lpips::{Lpips, WeightsError};
 use crate::metrics::{psnr::psnr, ssim::ssim};
-use crate::scene::{Camera, Scene, Split};
+use crate::scene::{Camera, Pinhole, Scene, Split};
 use crate::stages::evaluate::{MaskMode, evaluate_images};
 use crate::tables::Provenance;
 
@@ -161,13 +161,15 @@ fn bench_scene(dir: &std::path::Path, size: usize, count: usize) -> anyhow::Resu
         frame,
         camera: name.clone(),
         split,
-        fx: size as f64,
-        fy: size as f64,
-        cx: size as f64 / 2.0,
-        cy: size as f64 / 2.0,
-        width: size as u32,
-        height: size as u32,
-        w2c: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0],
+        pinhole: Pinhole {
+            fx: size as f64,
+            fy: size as f64,
+            cx: size as f64 / 2.0,
+            cy: size as f64 / 2.0,
+            width: size as u32,
+            height: size as u32,
+            w2c: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0],
+        },
         image_path: format!("rgb/{name}/{frame:05}.png"),
         depth_path: None,
         mask_path: None,
