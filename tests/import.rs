@@ -583,16 +583,8 @@ fn imported_mosca_runs_through_the_graph_stages() {
         .as_ref()
         .unwrap()
         .iter()
-        .map(|c| usplat4d::scene::Camera {
-            frame: c.frame,
-            camera: "0".into(),
-            split: usplat4d::scene::Split::Train,
-            pinhole: c.pinhole,
-            image_path: format!("rgb/0/{:05}.png", c.frame),
-            depth_path: None,
-            mask_path: None,
-            angle_offset_deg: None,
-            distortion: None,
+        .map(|c| {
+            usplat4d::scene::Camera::new(c.frame, "0", usplat4d::scene::Split::Train, c.pinhole)
         })
         .collect();
     let scene = usplat4d::scene::Scene { dir: dir.join("s"), cameras };

@@ -223,17 +223,7 @@ mod tests {
     use crate::scene::{Pinhole, Split};
 
     fn cam(frame: u32, w2c: [f64; 16]) -> Camera {
-        Camera {
-            frame,
-            camera: "0".into(),
-            split: Split::Train,
-            pinhole: Pinhole { fx: 50.0, fy: 50.0, cx: 32.0, cy: 24.0, width: 64, height: 48, w2c },
-            image_path: String::new(),
-            depth_path: None,
-            mask_path: None,
-            angle_offset_deg: None,
-            distortion: None,
-        }
+        Camera::new(frame, "0", Split::Train, Pinhole::centred(50.0, 64, 48, w2c))
     }
 
     #[test]

@@ -68,6 +68,13 @@ pub struct Pinhole {
 }
 
 impl Pinhole {
+    /// A pinhole of focal length `focal` (both axes) with the principal point at the centre
+    /// of a `width`×`height` image.
+    pub fn centred(focal: f64, width: u32, height: u32, w2c: [f64; 16]) -> Pinhole {
+        let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+        Pinhole { fx: focal, fy: focal, cx, cy, width, height, w2c }
+    }
+
     /// The image size (W, H).
     pub fn size(&self) -> (usize, usize) {
         (self.width as usize, self.height as usize)
@@ -182,6 +189,22 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The camera `camera` of `frame` with the scene layout's image path
+    /// `rgb/<camera>/<frame:05>.png`, and no depth, mask, angle offset or distortion.
+    pub fn new(frame: u32, camera: &str, split: Split, pinhole: Pinhole) -> Camera {
+        Camera {
+            frame,
+            camera: camera.into(),
+            split,
+            pinhole,
+            image_path: format!("rgb/{camera}/{frame:05}.png"),
+            depth_path: None,
+            mask_path: None,
+            angle_offset_deg: None,
+            distortion: None,
+        }
+    }
+
     /// The world-to-camera matrix (glam is column-major; `w2c` is stored row-major).
     pub fn w2c_mat(&self) -> DMat4 {
         DMat4::from_cols_array(&self.pinhole.w2c).transpose()

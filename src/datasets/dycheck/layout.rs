@@ -379,24 +379,11 @@ mod tests {
     use crate::scene::Pinhole;
 
     fn cam(camera: &str, frame: u32, split: Split) -> Camera {
+        let pinhole = Pinhole::centred(50.0, 16, 12, Camera::w2c_from_mat(glam::DMat4::IDENTITY));
         Camera {
-            frame,
-            camera: camera.into(),
-            split,
-            pinhole: Pinhole {
-                fx: 50.0,
-                fy: 50.0,
-                cx: 8.0,
-                cy: 6.0,
-                width: 16,
-                height: 12,
-                w2c: Camera::w2c_from_mat(glam::DMat4::IDENTITY),
-            },
-            image_path: format!("rgb/{camera}/{frame:05}.png"),
             depth_path: (split == Split::Train).then(|| format!("depth/{camera}/{frame:05}.npy")),
             mask_path: (split == Split::Eval).then(|| format!("mask/{camera}/{frame:05}.png")),
-            angle_offset_deg: None,
-            distortion: None,
+            ..Camera::new(frame, camera, split, pinhole)
         }
     }
 
