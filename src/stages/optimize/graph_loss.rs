@@ -27,6 +27,7 @@ use rayon::prelude::*;
 
 use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
 use super::poses::{PoseGrads, Poses};
+use super::smoothness;
 use super::timing::PhaseTimes;
 use crate::math::dqb::{self, Dq};
 use crate::math::quat64::{self as q4, M3, V3};
@@ -544,20 +545,18 @@ impl GraphObjective {
         out
     }
 
-    /// Velocity and acceleration (unweighted) over keys and non-keys, streamed by frame
-    /// blocks; adds the λ-weighted gradients.
+    /// Velocity and acceleration (unweighted) over keys and non-keys; adds the λ-weighted
+    /// gradients.
     fn smoothness(&self, poses: &Poses, grads: &mut PoseGrads) -> [f64; 2] {
         let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
         let [lv, la] = self.s.lambda_vel_acc;
         let form = self.s.motion;
         let (nv, na) = if form == MotionForm::Release || self.s.reduction == Reduction::Mean {
-            motion::smoothness_means(self.frames, all.len())
+            smoothness::smoothness_means(self.frames, all.len())
         } else {
             (1.0, 1.0)
         };
-        motion::stream_frames(poses, &all, 2, grads, |tr, g| {
-            motion::smoothness(tr, form, (nv, lv), (na, la), g)
-        })
+        smoothness::smoothness(poses, &all, form, (nv, lv), (na, la), grads)
     }
 
     /// Key edge terms; returns their weighted contributions.

@@ -13,6 +13,7 @@ pub mod motion;
 pub mod objective;
 pub mod params;
 pub mod poses;
+pub mod smoothness;
 pub mod state;
 pub mod step;
 pub mod timing;

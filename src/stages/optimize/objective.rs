@@ -19,6 +19,7 @@ use glam::DMat3;
 use super::graph_loss::{GraphObjective, GraphSettings};
 use super::motion::{self, EdgeSet, MotionForm};
 use super::poses::{PoseGrads, Poses};
+use super::smoothness;
 use super::state::TrainState;
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -102,19 +103,21 @@ impl KnnMotion {
         let (nt, e) = (poses.frames, self.src.len());
         let per = |terms: usize| 1.0 / terms.max(1) as f64;
         let (iso_norm, rigid_norm) = (per(e * nt), per(e * nt.saturating_sub(1)));
-        let (vel_norm, acc_norm) = motion::smoothness_means(nt, self.nodes.len());
-        let paper = MotionForm::Paper;
-        let [iso, rigid, vel, acc] =
-            motion::stream_frames(poses, &self.nodes, 2, grads, |tr, g| {
-                let [vel, acc] =
-                    motion::smoothness(tr, paper, (vel_norm, 0.01), (acc_norm, 0.01), g);
-                [
-                    motion::isometry(tr, es, &self.rest, iso_norm, 1.0, g, None),
-                    motion::rigidity(tr, es, 1, rigid_norm, 1.0, g, None),
-                    vel,
-                    acc,
-                ]
-            });
+        let (vel_norm, acc_norm) = smoothness::smoothness_means(nt, self.nodes.len());
+        let [iso, rigid] = motion::stream_frames(poses, &self.nodes, 1, grads, |tr, g| {
+            [
+                motion::isometry(tr, es, &self.rest, iso_norm, 1.0, g, None),
+                motion::rigidity(tr, es, 1, rigid_norm, 1.0, g, None),
+            ]
+        });
+        let [vel, acc] = smoothness::smoothness(
+            poses,
+            &self.nodes,
+            MotionForm::Paper,
+            (vel_norm, 0.01),
+            (acc_norm, 0.01),
+            grads,
+        );
         vec![
             ("knn_isometry", iso),
             ("knn_rigidity", rigid),
