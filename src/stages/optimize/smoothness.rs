@@ -99,7 +99,7 @@ pub fn smoothness(
 #[derive(Debug, Clone, Copy, Default)]
 struct Slot {
     p: V3,
-    /// Raw rotation, its unit quaternion and norm.
+    /// Raw rotation, its unit quaternion and 1/norm (0 for a zero q).
     q: Q,
     u: Q,
     qn: f64,
@@ -133,7 +133,9 @@ fn sweep(
     let mut flush = |st: &[Slot], t: usize| {
         for k in 0..m {
             let s = &st[(t % 3) * m + k];
-            let gu = q4::normalize_vjp(s.u, s.qn, s.gu);
+            // normalize's VJP (g − u⟨u, g⟩)/‖q‖, by the reciprocal norm kept in `qn`
+            let d = q4::dot4(s.u, s.gu);
+            let gu = [0, 1, 2, 3].map(|c| (s.gu[c] - s.u[c] * d) * s.qn);
             emit(t, k, s.gp, [0, 1, 2, 3].map(|c| s.gq[c] + gu[c]));
         }
     };
@@ -141,7 +143,14 @@ fn sweep(
         let s0 = (t % 3) * m;
         for k in 0..m {
             let (p, q) = load(t, k);
-            let (u, qn) = q4::normalize(q);
+            // q/‖q‖ (zero q: identity, zero gradient) and 1/‖q‖
+            let len = q4::norm(q);
+            let (u, qn) = if len > 0.0 {
+                let inv = 1.0 / len;
+                (q.map(|x| x * inv), inv)
+            } else {
+                ([1.0, 0.0, 0.0, 0.0], 0.0)
+            };
             st[s0 + k] = Slot { p, q, u, qn, ..Slot::default() };
         }
         if t == 0 {
