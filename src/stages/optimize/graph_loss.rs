@@ -654,11 +654,18 @@ impl GraphObjective {
                     Reduction::Sum => 1.0 / ne,
                     Reduction::Mean => mean(d),
                 };
-                let v =
-                    motion::isometry(&track, es, &rest, per(0), km * li, &mut tg, Some(&mut ge));
-                out.push(("key_isometry", km * li * v));
-                let v = motion::rigidity(&track, es, 1, per(1), km * lr, &mut tg, Some(&mut ge));
-                out.push(("key_rigidity", km * lr * v));
+                let (iso, rigid) = ((per(0), km * li), (per(1), km * lr));
+                let [vi, vr] = motion::isometry_rigidity(
+                    &track,
+                    es,
+                    &rest,
+                    iso,
+                    rigid,
+                    &mut tg,
+                    Some(&mut ge),
+                );
+                out.push(("key_isometry", km * li * vi));
+                out.push(("key_rigidity", km * lr * vr));
                 let v = motion::relative_rotation(
                     &track,
                     es,

@@ -374,6 +374,32 @@ impl Partial {
         }
         (len > 0.0).then(|| scale * norm * w / len)
     }
+
+    /// Add edge e's isometry value `norm·w·|‖d‖ − D|` and its weight and rest-length
+    /// gradients; returns `scale ·` its gradient with respect to d, when not zero.
+    #[inline]
+    fn add_isometry(
+        &mut self,
+        e: usize,
+        w: f64,
+        rest: f64,
+        d: V3,
+        norm: f64,
+        scale: f64,
+    ) -> Option<V3> {
+        let len = norm3(d);
+        let r = len - rest;
+        self.value += norm * w * r.abs();
+        let s = sign(r);
+        if !self.g_w.is_empty() {
+            self.g_w[e] += scale * norm * r.abs();
+            self.g_rest[e] -= scale * norm * w * s;
+        }
+        (len > 0.0 && s != 0.0).then(|| {
+            let k = scale * norm * w * s / len;
+            d.map(|x| x * k)
+        })
+    }
 }
 
 /// An edge term coupling frames t−Δ and t (Δ ≥ 1): `frame(part, t − Δ, t, base, rows)`
@@ -507,30 +533,35 @@ pub fn relative_rotation(
 ) -> f64 {
     let m = track.m;
     offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
-        let rel = |k: usize| {
-            let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
-            (a, b, q4::mul(a, q4::conj(b)))
-        };
+        // Each Gaussian's q(t) q(t−Δ)* once, and the gradient reaching it from all its
+        // edges (the VJP of the product is linear: chained once per Gaussian).
+        let ends = |k: usize| (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
+        let rel: Vec<Q> = (0..m)
+            .map(|k| {
+                let (a, b) = ends(k);
+                q4::mul(a, q4::conj(b))
+            })
+            .collect();
+        let mut g_rel = vec![[0.0; 4]; m];
         for (i, run) in by_source(edges.src) {
-            let (ai, bi, qi) = rel(i);
-            let mut g_qi = [0.0; 4];
             for e in run {
                 let j = edges.dst[e] as usize;
-                let (aj, bj, qj) = rel(j);
-                let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
+                let r = [0, 1, 2, 3].map(|c| rel[j][c] - rel[i][c]);
                 if let Some(k) = part.add_edge(e, edges.w[e], q4::norm(r), norm, scale) {
-                    let gr = r.map(|x| x * k);
-                    let (ga, gbc) = q4::mul_vjp(aj, q4::conj(bj), gr);
-                    add_to(&mut rows[(t1 - base) * m + j], 7, &ga);
-                    add_to(&mut rows[(t0 - base) * m + j], 7, &q4::conj(gbc));
                     for c in 0..4 {
-                        g_qi[c] -= gr[c];
+                        g_rel[j][c] += r[c] * k;
+                        g_rel[i][c] -= r[c] * k;
                     }
                 }
             }
-            let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
-            add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
-            add_to(&mut rows[(t0 - base) * m + i], 7, &q4::conj(gbc));
+        }
+        for (k, gr) in g_rel.iter().enumerate() {
+            if *gr != [0.0; 4] {
+                let (a, b) = ends(k);
+                let (ga, gbc) = q4::mul_vjp(a, q4::conj(b), *gr);
+                add_to(&mut rows[(t1 - base) * m + k], 7, &ga);
+                add_to(&mut rows[(t0 - base) * m + k], 7, &q4::conj(gbc));
+            }
         }
     })
 }
@@ -545,28 +576,31 @@ pub fn isometry(
     g: &mut TrackGrad,
     g_edges: Option<&mut EdgeGrad>,
 ) -> f64 {
+    isometry_until(track, edges, rest, (norm, scale), track.frames, g, g_edges)
+}
+
+/// [`isometry`] at the frames before `end` only.
+fn isometry_until(
+    track: &Track,
+    edges: EdgeSet,
+    rest: &[f64],
+    (norm, scale): (f64, f64),
+    end: usize,
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+) -> f64 {
     assert_eq!(rest.len(), edges.len(), "one rest length per edge");
     let m = track.m;
     let want_e = g_edges.is_some();
     let ne = edges.len();
-    let parts = frame_windows(g, track.frames, 0, track.first, |ts, base, rows| {
+    let parts = frame_windows(g, end, 0, track.first, |ts, base, rows| {
         let mut part = Partial::new(want_e, ne, true);
         for t in ts {
             for e in 0..ne {
                 let (i, j) = (edges.src[e] as usize, edges.dst[e] as usize);
                 let d = sub(track.p[track.at(t, j)], track.p[track.at(t, i)]);
-                let len = norm3(d);
-                let r = len - rest[e];
-                let w = edges.w[e];
-                part.value += norm * w * r.abs();
-                let s = sign(r);
-                if want_e {
-                    part.g_w[e] += scale * norm * r.abs();
-                    part.g_rest[e] -= scale * norm * w * s;
-                }
-                if len > 0.0 && s != 0.0 {
-                    let k = scale * norm * w * s / len;
-                    let gd = d.map(|x| x * k);
+                let gd = part.add_isometry(e, edges.w[e], rest[e], d, norm, scale);
+                if let Some(gd) = gd {
                     add_to(&mut rows[(t - base) * m + j], 0, &gd);
                     add_to(&mut rows[(t - base) * m + i], 0, &gd.map(|x| -x));
                 }
@@ -575,6 +609,80 @@ pub fn isometry(
         part
     });
     reduce(parts, g_edges)
+}
+
+/// [`isometry`] and [`rigidity`] with Δ = 1 in one pass over the edges, which share the
+/// edge vectors d_e(t): `[isometry, rigidity]`, the values and gradients of the two calls
+/// (`iso` and `rigid` are their `(norm, scale)`), summed in another order.
+pub fn isometry_rigidity(
+    track: &Track,
+    edges: EdgeSet,
+    rest: &[f64],
+    (norm_i, scale_i): (f64, f64),
+    (norm_r, scale_r): (f64, f64),
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+) -> [f64; 2] {
+    assert_eq!(rest.len(), edges.len(), "one rest length per edge");
+    let (m, ne, want_e) = (track.m, edges.len(), g_edges.is_some());
+    let mut g_edges = g_edges;
+    // Frame 0 has an isometry term and no rigidity term.
+    let iso0 = if track.first == 0 {
+        let ge = g_edges.as_deref_mut();
+        isometry_until(track, edges, rest, (norm_i, scale_i), 1.min(track.frames), g, ge)
+    } else {
+        0.0
+    };
+    let parts = frame_windows(g, track.frames, 1, track.first, |ts, base, rows| {
+        let mut iso = Partial::new(want_e, ne, true);
+        let mut rig = Partial::new(want_e, ne, false);
+        for t1 in ts {
+            let (t0, r0, r1) = (t1 - 1, (t1 - 1 - base) * m, (t1 - base) * m);
+            for (i, run) in by_source(edges.src) {
+                let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
+                let c = q4::mul(a, q4::conj(b));
+                let rm = q4::to_rotmat(c);
+                let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+                let mut g_rm: M3 = [[0.0; 3]; 3];
+                let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
+                for e in run {
+                    let (j, w) = (edges.dst[e] as usize, edges.w[e]);
+                    let d0 = sub(track.p[track.at(t0, j)], pi0);
+                    let d1 = sub(track.p[track.at(t1, j)], pi1);
+                    let mut g_d1 = [0.0; 3];
+                    let r = sub(d0, q4::mat_vec(&rm, d1));
+                    if let Some(k) = rig.add_edge(e, w, norm3(r), norm_r, scale_r) {
+                        let gr = r.map(|x| x * k);
+                        g_d1 = q4::mat_t_vec(&rm, gr).map(|x| -x);
+                        q4::add_outer(&mut g_rm, gr.map(|x| -x), d1);
+                        add_to(&mut rows[r0 + j], 0, &gr);
+                        for c in 0..3 {
+                            g_pi0[c] -= gr[c];
+                        }
+                    }
+                    if let Some(gd) = iso.add_isometry(e, w, rest[e], d1, norm_i, scale_i) {
+                        for c in 0..3 {
+                            g_d1[c] += gd[c];
+                        }
+                    }
+                    add_to(&mut rows[r1 + j], 0, &g_d1);
+                    for c in 0..3 {
+                        g_pi1[c] -= g_d1[c];
+                    }
+                }
+                let g_c = q4::to_rotmat_vjp(c, &g_rm);
+                let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
+                add_to(&mut rows[r0 + i], 0, &g_pi0);
+                add_to(&mut rows[r1 + i], 0, &g_pi1);
+                add_to(&mut rows[r0 + i], 7, &g_a);
+                add_to(&mut rows[r1 + i], 7, &q4::conj(g_bc));
+            }
+        }
+        (iso, rig)
+    });
+    let (iso, rig): (Vec<Partial>, Vec<Partial>) = parts.into_iter().unzip();
+    let iso = iso0 + reduce(iso, g_edges.as_deref_mut());
+    [iso, reduce(rig, g_edges)]
 }
 
 /// The vanilla recipe's motion-locality graph: each of the `positions` `[m, 3]` (the dynamic
@@ -747,6 +855,54 @@ mod tests {
             assert_eq!(v.map(f64::to_bits), got.map(f64::to_bits), "{threads} threads");
             assert_eq!(g, got_g, "{threads} threads");
         }
+    }
+
+    /// The fused pass equals its two terms, on a whole track and on blocks with context.
+    #[test]
+    fn fused_isometry_rigidity_equals_the_two_terms() {
+        let (t, m) = (23, 6);
+        let (tr, src, dst, w, rest) = case(13, t, m);
+        let e = EdgeSet { src: &src, dst: &dst, w: &w };
+        let (iso, rig) = ((0.4, 0.7), (0.3, 1.3));
+        let (n, nodes) = (9, [7u32, 0, 3, 8, 2, 5]);
+        let mut poses = Poses::identity(t, n);
+        for f in 0..t {
+            for (k, &i) in nodes.iter().enumerate() {
+                poses.position[f * n + i as usize] = tr.p[f * m + k].map(|x| x as f32);
+                poses.rotation[f * n + i as usize] = tr.q[f * m + k].map(|x| x as f32);
+            }
+        }
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * (1.0 + b.abs());
+        for first in [0, 2] {
+            let tr = Track { first, ..tr.clone() };
+            let (mut g1, mut g2) = (TrackGrad::zeros(&tr), TrackGrad::zeros(&tr));
+            let (mut e1, mut e2) = (EdgeGrad::zeros(src.len()), EdgeGrad::zeros(src.len()));
+            let want = [
+                isometry(&tr, e, &rest, iso.0, iso.1, &mut g1, Some(&mut e1)),
+                rigidity(&tr, e, 1, rig.0, rig.1, &mut g1, Some(&mut e1)),
+            ];
+            let got = isometry_rigidity(&tr, e, &rest, iso, rig, &mut g2, Some(&mut e2));
+            assert!(close(got[0], want[0]) && close(got[1], want[1]), "{got:?} vs {want:?}");
+            assert!(want[0] > 0.0 && want[1] > 0.0);
+            let flat = |g: &TrackGrad| g.rows.iter().flatten().copied().collect::<Vec<f64>>();
+            assert!(flat(&g2).iter().zip(flat(&g1)).all(|(a, b)| close(*a, b)), "first {first}");
+            assert!(e2.w.iter().zip(&e1.w).all(|(a, b)| close(*a, *b)));
+            assert!(e2.rest.iter().zip(&e1.rest).all(|(a, b)| close(*a, *b)));
+        }
+        // streamed in blocks of 4 frames with one frame of context
+        let terms =
+            |tr: &Track, g: &mut TrackGrad| isometry_rigidity(tr, e, &rest, iso, rig, g, None);
+        let whole = Track::gather(&poses, &nodes);
+        let mut g = TrackGrad::zeros(&whole);
+        let want = terms(&whole, &mut g);
+        let mut want_g = PoseGrads::zeros(t, n);
+        g.scatter(&whole, &nodes, n, &mut want_g);
+        let mut got_g = PoseGrads::zeros(t, n);
+        let got = stream_frames_in(&poses, &nodes, 1, (4 * m, 3 * 5 * m), &mut got_g, terms);
+        assert!(close(got[0], want[0]) && close(got[1], want[1]), "{got:?} vs {want:?}");
+        let near = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+        assert!(near(got_g.position.as_flattened(), want_g.position.as_flattened()));
+        assert!(near(got_g.rotation.as_flattened(), want_g.rotation.as_flattened()));
     }
 
     #[test]
