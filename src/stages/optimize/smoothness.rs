@@ -55,8 +55,7 @@ pub fn smoothness(
     assert!((*nodes.last().unwrap() as usize) < n, "smoothness: node out of range");
     // Each chunk's column range [lo, hi) of every frame row, split off the rows in order.
     let chunks: Vec<&[u32]> = nodes.chunks(CHUNK).collect();
-    let mut rows: Vec<Vec<(&mut [[f32; 3]], &mut [[f32; 4]])>> =
-        chunks.iter().map(|_| Vec::with_capacity(nt)).collect();
+    let mut rows: Vec<Vec<RowPart>> = chunks.iter().map(|_| Vec::with_capacity(nt)).collect();
     for (gp, gq) in grads.position.chunks_mut(n).zip(grads.rotation.chunks_mut(n)) {
         let (mut gp, mut gq, mut at) = (gp, gq, 0);
         for (c, ch) in chunks.iter().enumerate() {
@@ -94,6 +93,9 @@ pub fn smoothness(
     let [v, a] = parts.iter().fold([0.0; 2], |s, p| [s[0] + p[0], s[1] + p[1]]);
     [norm_v * v, norm_a * a]
 }
+
+/// A chunk's part of one frame's position and rotation gradient rows.
+type RowPart<'a> = (&'a mut [[f32; 3]], &'a mut [[f32; 4]]);
 
 /// One Gaussian at one frame of a [`sweep`]: its pose in f64 and the gradient so far.
 #[derive(Debug, Clone, Copy, Default)]
