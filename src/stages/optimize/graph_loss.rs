@@ -27,6 +27,7 @@ use rayon::prelude::*;
 
 use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
 use super::poses::{PoseGrads, Poses};
+use super::smoothness;
 use super::timing::PhaseTimes;
 use crate::math::dqb::{self, Dq};
 use crate::math::quat64::{self as q4, M3, V3};
@@ -464,46 +465,101 @@ impl GraphObjective {
         (d, q4::mat_t_vec(rm, gy))
     }
 
-    /// Anchor Σ_t Σ_i ‖p_{i,t} − p°_{i,t}‖ over `nodes`, all frames; adds `weight ·` gradient.
-    /// Parallel over frames (each writes its own gradient row), sums reduced in frame order.
-    fn anchor(&self, poses: &Poses, nodes: &[u32], weight: f64, grads: &mut PoseGrads) -> f64 {
-        if weight == 0.0 || nodes.is_empty() {
-            return 0.0;
+    /// The anchor metric as w_{t,i} · Aₜ: Aₜ = R_tᵀ diag(r') R_t `[T]` (r' = 1/r for the
+    /// literal reading, r for the release's, 1 for Euclidean), so that Σ_c k_c (R_t x)_c² of
+    /// [`Self::metric`] is w_{t,i} xᵀ Aₜ x.
+    fn anchor_matrices(&self) -> Vec<M3> {
+        let r = self.s.r_xyz;
+        let diag = match self.s.anchor_metric {
+            AnchorMetric::Euclidean => [1.0; 3],
+            AnchorMetric::PaperLiteral => r.map(|x| 1.0 / x),
+            AnchorMetric::Release => r,
+        };
+        let a = |m: &M3| {
+            let mut out = [[0.0; 3]; 3];
+            for i in 0..3 {
+                for j in 0..3 {
+                    out[i][j] = (0..3).map(|c| m[c][i] * diag[c] * m[c][j]).sum();
+                }
+            }
+            out
+        };
+        self.rot.iter().map(a).collect()
+    }
+
+    /// w_{t,i} of [`Self::anchor_matrices`] (1/u, or the release's mask as 1), `None` when
+    /// the term is masked out.
+    #[inline]
+    fn anchor_weight(&self, t: usize, i: usize) -> Option<f64> {
+        let u = self.u[t * self.n + i] as f64;
+        match self.s.anchor_metric {
+            AnchorMetric::Euclidean => Some(1.0),
+            AnchorMetric::PaperLiteral => Some(1.0 / u),
+            AnchorMetric::Release => (u < 1.0 / self.s.contrib_threshold).then_some(1.0),
         }
+    }
+
+    /// Anchors Σ_t Σ_i ‖p_{i,t} − p°_{i,t}‖ of the keys and of the non-keys, all frames, in
+    /// one pass over the poses; adds `weights ·` their gradients, returns both sums. Parallel
+    /// over frames (each writes its own gradient row), sums reduced in frame order.
+    fn anchors(&self, poses: &Poses, weights: [f64; 2], grads: &mut PoseGrads) -> [f64; 2] {
         let n = self.n;
+        // role of each pose: 0 none (or weight 0), 1 key, 2 non-key
+        let mut role = vec![0u8; n];
+        for (list, r) in [(&self.keys, 0), (&self.nonkeys, 1)] {
+            if weights[r] != 0.0 {
+                list.iter().for_each(|&i| role[i as usize] = r as u8 + 1);
+            }
+        }
+        if role.iter().all(|&r| r == 0) {
+            return [0.0; 2];
+        }
         let norm = match self.s.reduction {
-            Reduction::Sum => 1.0,
+            Reduction::Sum => [1.0; 2],
             Reduction::Mean => {
-                let count: usize = (0..self.frames)
-                    .into_par_iter()
-                    .map(|t| {
-                        nodes.iter().filter(|&&i| self.metric(t, i as usize).is_some()).count()
-                    })
-                    .sum();
-                1.0 / count.max(1) as f64
+                let count = |r: u8| -> usize {
+                    (0..self.frames)
+                        .into_par_iter()
+                        .map(|t| {
+                            (0..n)
+                                .filter(|&i| role[i] == r && self.anchor_weight(t, i).is_some())
+                                .count()
+                        })
+                        .sum()
+                };
+                [1, 2].map(|r| 1.0 / count(r).max(1) as f64)
             }
         };
-        let sums: Vec<f64> = grads
+        let scale = [0, 1].map(|r| weights[r] * norm[r]);
+        let mats = self.anchor_matrices();
+        let sums: Vec<[f64; 2]> = grads
             .position
             .par_chunks_mut(n)
             .enumerate()
             .map(|(t, row)| {
-                let mut sum = 0.0;
-                for &i in nodes {
-                    let i = i as usize;
-                    let Some(k) = self.metric(t, i) else { continue };
+                let a = &mats[t];
+                let mut sum = [0.0; 2];
+                for i in 0..n {
+                    let r = match role[i] {
+                        0 => continue,
+                        r => r as usize - 1,
+                    };
+                    let Some(w) = self.anchor_weight(t, i) else { continue };
                     let o = t * n + i;
                     let x = [0, 1, 2].map(|c| (poses.position[o][c] - self.p0[o][c]) as f64);
-                    let (d, g) = self.distance(t, k, x);
-                    sum += d;
+                    let y = q4::mat_vec(a, x);
+                    let d = (w * (x[0] * y[0] + x[1] * y[1] + x[2] * y[2]) + 1e-8).sqrt();
+                    sum[r] += d;
+                    let k = scale[r] * w / d;
                     for c in 0..3 {
-                        row[i][c] += (weight * norm * g[c]) as f32;
+                        row[i][c] += (k * y[c]) as f32;
                     }
                 }
                 sum
             })
             .collect();
-        sums.iter().sum::<f64>() * norm
+        let total = sums.iter().fold([0.0; 2], |s, x| [s[0] + x[0], s[1] + x[1]]);
+        [total[0] * norm[0], total[1] * norm[1]]
     }
 
     /// Evaluate every term on `poses` (DQB terms on the batch `frames`), add the gradients
@@ -525,10 +581,8 @@ impl GraphObjective {
         self.g_src_q.fill(0.0);
         let mut out = Vec::new();
         let s = self.s.clone();
-        let (ka, na) = timer.time("graph anchors", || {
-            let ka = self.anchor(poses, &self.keys, s.key_anchor, grads);
-            (ka, self.anchor(poses, &self.nonkeys, s.nonkey_anchor, grads))
-        });
+        let [ka, na] = timer
+            .time("graph anchors", || self.anchors(poses, [s.key_anchor, s.nonkey_anchor], grads));
         out.push(("key_anchor", s.key_anchor * ka));
         out.push(("nonkey_anchor", s.nonkey_anchor * na));
         let (dp, dq) = timer.time("graph DQB", || self.dqb_terms(poses, frames, grads));
@@ -544,20 +598,18 @@ impl GraphObjective {
         out
     }
 
-    /// Velocity and acceleration (unweighted) over keys and non-keys, streamed by frame
-    /// blocks; adds the λ-weighted gradients.
+    /// Velocity and acceleration (unweighted) over keys and non-keys; adds the λ-weighted
+    /// gradients.
     fn smoothness(&self, poses: &Poses, grads: &mut PoseGrads) -> [f64; 2] {
         let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
         let [lv, la] = self.s.lambda_vel_acc;
         let form = self.s.motion;
         let (nv, na) = if form == MotionForm::Release || self.s.reduction == Reduction::Mean {
-            motion::smoothness_means(self.frames, all.len())
+            smoothness::smoothness_means(self.frames, all.len())
         } else {
             (1.0, 1.0)
         };
-        motion::stream_frames(poses, &all, 2, grads, |tr, g| {
-            motion::smoothness(tr, form, (nv, lv), (na, la), g)
-        })
+        smoothness::smoothness(poses, &all, form, (nv, lv), (na, la), grads)
     }
 
     /// Key edge terms; returns their weighted contributions.
@@ -602,11 +654,18 @@ impl GraphObjective {
                     Reduction::Sum => 1.0 / ne,
                     Reduction::Mean => mean(d),
                 };
-                let v =
-                    motion::isometry(&track, es, &rest, per(0), km * li, &mut tg, Some(&mut ge));
-                out.push(("key_isometry", km * li * v));
-                let v = motion::rigidity(&track, es, 1, per(1), km * lr, &mut tg, Some(&mut ge));
-                out.push(("key_rigidity", km * lr * v));
+                let (iso, rigid) = ((per(0), km * li), (per(1), km * lr));
+                let [vi, vr] = motion::isometry_rigidity(
+                    &track,
+                    es,
+                    &rest,
+                    iso,
+                    rigid,
+                    &mut tg,
+                    Some(&mut ge),
+                );
+                out.push(("key_isometry", km * li * vi));
+                out.push(("key_rigidity", km * lr * vr));
                 let v = motion::relative_rotation(
                     &track,
                     es,
@@ -1070,15 +1129,9 @@ mod tests {
                 f();
                 s.elapsed().as_secs_f64() * 1e3
             };
-            let all: Vec<u32> = keys.iter().chain(&nonkeys).copied().collect();
             let smooth = part(&mut || {
                 obj.smoothness(&p0, &mut g);
             });
-            let gather = part(&mut || {
-                let all: Vec<u32> = keys.iter().chain(&nonkeys).copied().collect();
-                motion::stream_frames(&p0, &all, 2, &mut g, |_, _| [0.0]);
-            });
-            eprintln!("  streaming alone (gather + scatter) {gather:.0} ms");
             let dqb_ms = part(&mut || {
                 obj.dqb_terms(&p0, &frames, &mut g);
             });
@@ -1086,7 +1139,7 @@ mod tests {
                 obj.key_motion(&p0, 1, &mut g);
             });
             let anchor_ms = part(&mut || {
-                obj.anchor(&p0, &all, 1.0, &mut g);
+                obj.anchors(&p0, [1.0, 1.0], &mut g);
             });
             eprintln!(
                 "  smoothness {smooth:.0} ms, DQB {dqb_ms:.0} ms, key motion {key_ms:.0} ms, anchors {anchor_ms:.0} ms"

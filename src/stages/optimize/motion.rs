@@ -7,10 +7,10 @@
 //! - rigidity with offset Δ: w_e ‖d_e(t−Δ) − R_i(t−Δ) R_i(t)ᵀ d_e(t)‖, the paper's
 //!   ‖p_{j,t−Δ} − T_{i,t−Δ} T_{i,t}⁻¹ p_{j,t}‖ (the release's ‖ΔR_i(t) d(t+1) − d(t)‖ is the
 //!   same with t shifted);
-//! - relative rotation: w_e ‖q_j(t) q_j(t−Δ)⁻¹ − q_i(t) q_i(t−Δ)⁻¹‖₂ on unit quaternions;
-//! - velocity and acceleration per Gaussian: the paper's L1 forms (positions; the relative
-//!   rotation's deviation from the identity, see [`MotionForm`]) summed over t and i, or the
-//!   release's mean squared velocity and mean L2 acceleration on raw components.
+//! - relative rotation: w_e ‖q_j(t) q_j(t−Δ)⁻¹ − q_i(t) q_i(t−Δ)⁻¹‖₂ on unit quaternions.
+//!
+//! The per-Gaussian velocity and acceleration terms, in the [`MotionForm`] chosen here, are in
+//! [`super::smoothness`].
 //!
 //! The paper normalises edge sums by 1/(k|V|) (= 1/E for a kNN graph, E = k|V| edges) and
 //! sums over frames; the release averages over frames and kept edges. Every function returns
@@ -241,14 +241,6 @@ fn stream_frames_in<const K: usize>(
     total
 }
 
-/// The norms that make the velocity and acceleration of [`smoothness`] means over `m`
-/// Gaussians and the T − 1 and T − 2 frame steps of T `frames` (the release's means); the
-/// paper's sums use norm 1.
-pub fn smoothness_means(frames: usize, m: usize) -> (f64, f64) {
-    let per = |d: usize| 1.0 / (frames.saturating_sub(d) * m).max(1) as f64;
-    (per(1), per(2))
-}
-
 /// Edges over a track's Gaussians (compact indices `0..m`), `[E]` each. Edges from one source
 /// should be contiguous (kNN lists are): per-source quantities are computed once per run.
 #[derive(Debug, Clone, Copy)]
@@ -381,6 +373,32 @@ impl Partial {
             self.g_w[e] += scale * norm * len;
         }
         (len > 0.0).then(|| scale * norm * w / len)
+    }
+
+    /// Add edge e's isometry value `norm·w·|‖d‖ − D|` and its weight and rest-length
+    /// gradients; returns `scale ·` its gradient with respect to d, when not zero.
+    #[inline]
+    fn add_isometry(
+        &mut self,
+        e: usize,
+        w: f64,
+        rest: f64,
+        d: V3,
+        norm: f64,
+        scale: f64,
+    ) -> Option<V3> {
+        let len = norm3(d);
+        let r = len - rest;
+        self.value += norm * w * r.abs();
+        let s = sign(r);
+        if !self.g_w.is_empty() {
+            self.g_w[e] += scale * norm * r.abs();
+            self.g_rest[e] -= scale * norm * w * s;
+        }
+        (len > 0.0 && s != 0.0).then(|| {
+            let k = scale * norm * w * s / len;
+            d.map(|x| x * k)
+        })
     }
 }
 
@@ -515,30 +533,35 @@ pub fn relative_rotation(
 ) -> f64 {
     let m = track.m;
     offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
-        let rel = |k: usize| {
-            let (a, b) = (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
-            (a, b, q4::mul(a, q4::conj(b)))
-        };
+        // Each Gaussian's q(t) q(t−Δ)* once, and the gradient reaching it from all its
+        // edges (the VJP of the product is linear: chained once per Gaussian).
+        let ends = |k: usize| (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
+        let rel: Vec<Q> = (0..m)
+            .map(|k| {
+                let (a, b) = ends(k);
+                q4::mul(a, q4::conj(b))
+            })
+            .collect();
+        let mut g_rel = vec![[0.0; 4]; m];
         for (i, run) in by_source(edges.src) {
-            let (ai, bi, qi) = rel(i);
-            let mut g_qi = [0.0; 4];
             for e in run {
                 let j = edges.dst[e] as usize;
-                let (aj, bj, qj) = rel(j);
-                let r = [0, 1, 2, 3].map(|c| qj[c] - qi[c]);
+                let r = [0, 1, 2, 3].map(|c| rel[j][c] - rel[i][c]);
                 if let Some(k) = part.add_edge(e, edges.w[e], q4::norm(r), norm, scale) {
-                    let gr = r.map(|x| x * k);
-                    let (ga, gbc) = q4::mul_vjp(aj, q4::conj(bj), gr);
-                    add_to(&mut rows[(t1 - base) * m + j], 7, &ga);
-                    add_to(&mut rows[(t0 - base) * m + j], 7, &q4::conj(gbc));
                     for c in 0..4 {
-                        g_qi[c] -= gr[c];
+                        g_rel[j][c] += r[c] * k;
+                        g_rel[i][c] -= r[c] * k;
                     }
                 }
             }
-            let (ga, gbc) = q4::mul_vjp(ai, q4::conj(bi), g_qi);
-            add_to(&mut rows[(t1 - base) * m + i], 7, &ga);
-            add_to(&mut rows[(t0 - base) * m + i], 7, &q4::conj(gbc));
+        }
+        for (k, gr) in g_rel.iter().enumerate() {
+            if *gr != [0.0; 4] {
+                let (a, b) = ends(k);
+                let (ga, gbc) = q4::mul_vjp(a, q4::conj(b), *gr);
+                add_to(&mut rows[(t1 - base) * m + k], 7, &ga);
+                add_to(&mut rows[(t0 - base) * m + k], 7, &q4::conj(gbc));
+            }
         }
     })
 }
@@ -553,28 +576,31 @@ pub fn isometry(
     g: &mut TrackGrad,
     g_edges: Option<&mut EdgeGrad>,
 ) -> f64 {
+    isometry_until(track, edges, rest, (norm, scale), track.frames, g, g_edges)
+}
+
+/// [`isometry`] at the frames before `end` only.
+fn isometry_until(
+    track: &Track,
+    edges: EdgeSet,
+    rest: &[f64],
+    (norm, scale): (f64, f64),
+    end: usize,
+    g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
+) -> f64 {
     assert_eq!(rest.len(), edges.len(), "one rest length per edge");
     let m = track.m;
     let want_e = g_edges.is_some();
     let ne = edges.len();
-    let parts = frame_windows(g, track.frames, 0, track.first, |ts, base, rows| {
+    let parts = frame_windows(g, end, 0, track.first, |ts, base, rows| {
         let mut part = Partial::new(want_e, ne, true);
         for t in ts {
             for e in 0..ne {
                 let (i, j) = (edges.src[e] as usize, edges.dst[e] as usize);
                 let d = sub(track.p[track.at(t, j)], track.p[track.at(t, i)]);
-                let len = norm3(d);
-                let r = len - rest[e];
-                let w = edges.w[e];
-                part.value += norm * w * r.abs();
-                let s = sign(r);
-                if want_e {
-                    part.g_w[e] += scale * norm * r.abs();
-                    part.g_rest[e] -= scale * norm * w * s;
-                }
-                if len > 0.0 && s != 0.0 {
-                    let k = scale * norm * w * s / len;
-                    let gd = d.map(|x| x * k);
+                let gd = part.add_isometry(e, edges.w[e], rest[e], d, norm, scale);
+                if let Some(gd) = gd {
                     add_to(&mut rows[(t - base) * m + j], 0, &gd);
                     add_to(&mut rows[(t - base) * m + i], 0, &gd.map(|x| -x));
                 }
@@ -585,191 +611,78 @@ pub fn isometry(
     reduce(parts, g_edges)
 }
 
-/// A unit quaternion standardised to w ≥ 0, and the sign applied.
-#[inline]
-fn standardized(r: Q) -> (Q, f64) {
-    if r[0] < 0.0 { (r.map(|x| -x), -1.0) } else { (r, 1.0) }
-}
-
-/// Velocity and acceleration over all Gaussians of the track, `[velocity, acceleration]`,
-/// each `norm ·` its sum below (unscaled), with `scale ·` its gradient added; `vel` and
-/// `acc` are `(norm, scale)`.
-///
-/// Paper (norms 1): velocity `Σ_{t≥1} Σ_i ‖p_{t−1} − p_t‖₁ + ‖std(r_t) − 1‖₁` and
-/// acceleration `Σ_{t≥2} Σ_i ‖p_{t−2} − 2p_{t−1} + p_t‖₁ + ‖std(r_{t−1} r_t*) − 1‖₁` with
-/// the relative rotations r_t = q_{t−1} q_t* (unit quaternions). Both terms are taken in one
-/// pass that forms each r_t once and chains the gradients of both terms through it once.
-///
-/// Release: velocity `Σ ‖p_t − p_{t+1}‖²/3 + ‖q_t − q_{t+1}‖²/4`, whose mean over the
-/// components is norm = 1/((T−1)·m), and acceleration `Σ ‖2p_{t−1} − p_{t−2} − p_t‖ +
-/// ‖2q_{t−1} − q_{t−2} − q_t‖` (raw q), a mean with norm = 1/((T−2)·m)
-/// ([`smoothness_means`]).
-pub fn smoothness(
+/// [`isometry`] and [`rigidity`] with Δ = 1 in one pass over the edges, which share the
+/// edge vectors d_e(t): `[isometry, rigidity]`, the values and gradients of the two calls
+/// (`iso` and `rigid` are their `(norm, scale)`), summed in another order.
+pub fn isometry_rigidity(
     track: &Track,
-    form: MotionForm,
-    vel: (f64, f64),
-    acc: (f64, f64),
+    edges: EdgeSet,
+    rest: &[f64],
+    (norm_i, scale_i): (f64, f64),
+    (norm_r, scale_r): (f64, f64),
     g: &mut TrackGrad,
+    g_edges: Option<&mut EdgeGrad>,
 ) -> [f64; 2] {
-    match form {
-        MotionForm::Paper => smoothness_paper(track, vel, acc, g),
-        MotionForm::Release => {
-            [velocity_release(track, vel.0, vel.1, g), acceleration_release(track, acc.0, acc.1, g)]
-        }
-    }
-}
-
-/// The paper form of [`smoothness`]: per task (frames `ts` of [`frame_windows`]) and per
-/// Gaussian, a sweep over t that keeps r_{t−1} and its gradient, adds it to the unit
-/// quaternions of frames t−2, t−1 once r_{t−1} has no more terms, and moves on.
-fn smoothness_paper(
-    track: &Track,
-    (norm_v, scale_v): (f64, f64),
-    (norm_a, scale_a): (f64, f64),
-    g: &mut TrackGrad,
-) -> [f64; 2] {
-    let (nt, m) = (track.frames, track.m);
-    if nt < 2 || m == 0 {
-        return [0.0; 2];
-    }
-    let (kv, ka) = (scale_v * norm_v, scale_a * norm_a);
-    let parts = frame_windows(g, nt, 1, track.first, |ts, base, rows| {
-        let (mut v, mut a) = (0.0, 0.0);
-        // r_t for t ≥ r_lo: r_{ts.start − 1} is the r_{t−1} of the first acceleration term.
-        let r_lo = (ts.start - 1).max(1);
-        for k in 0..m {
-            let row = |t: usize| (t - base) * m + k;
-            // d/d(r_t) of r_t = u_{t−1} u_t*, to the unit quaternions of t−1 and t.
-            let chain = |rows: &mut [[f64; GW]], t: usize, gr: Q| {
-                let (ga, gbc) =
-                    q4::mul_vjp(track.u[track.at(t - 1, k)], q4::conj(track.u[track.at(t, k)]), gr);
-                add_to(&mut rows[row(t - 1)], 7, &ga);
-                add_to(&mut rows[row(t)], 7, &q4::conj(gbc));
-            };
-            let mut prev: Option<(Q, Q)> = None;
-            for t in r_lo..ts.end {
-                let r_t = q4::mul(track.u[track.at(t - 1, k)], q4::conj(track.u[track.at(t, k)]));
-                let mut g_t = [0.0; 4];
-                if t >= ts.start {
-                    let d = sub(track.p[track.at(t - 1, k)], track.p[track.at(t, k)]);
-                    v += d.iter().map(|x| x.abs()).sum::<f64>();
-                    let gd = d.map(|x| kv * sign(x));
-                    add_to(&mut rows[row(t - 1)], 0, &gd);
-                    add_to(&mut rows[row(t)], 0, &gd.map(|x| -x));
-                    let (r, s) = standardized(r_t);
-                    let dev = [r[0] - 1.0, r[1], r[2], r[3]];
-                    v += dev.iter().map(|x| x.abs()).sum::<f64>();
-                    add4(&mut g_t, dev.map(|x| kv * s * sign(x)));
-                    if let Some((r_p, g_p)) = prev.as_mut() {
-                        let (p0, p1, p2) = (
-                            track.p[track.at(t - 2, k)],
-                            track.p[track.at(t - 1, k)],
-                            track.p[track.at(t, k)],
-                        );
-                        let d = [0, 1, 2].map(|c| p0[c] - 2.0 * p1[c] + p2[c]);
-                        a += d.iter().map(|x| x.abs()).sum::<f64>();
-                        let gd = d.map(|x| ka * sign(x));
-                        add_to(&mut rows[row(t - 2)], 0, &gd);
-                        add_to(&mut rows[row(t - 1)], 0, &gd.map(|x| -2.0 * x));
-                        add_to(&mut rows[row(t)], 0, &gd);
-                        let (r, s) = standardized(q4::mul(*r_p, q4::conj(r_t)));
-                        let dev = [r[0] - 1.0, r[1], r[2], r[3]];
-                        a += dev.iter().map(|x| x.abs()).sum::<f64>();
-                        let gr = dev.map(|x| ka * s * sign(x));
-                        let (g_r1, g_r2c) = q4::mul_vjp(*r_p, q4::conj(r_t), gr);
-                        add4(g_p, g_r1);
-                        add4(&mut g_t, q4::conj(g_r2c));
+    assert_eq!(rest.len(), edges.len(), "one rest length per edge");
+    let (m, ne, want_e) = (track.m, edges.len(), g_edges.is_some());
+    let mut g_edges = g_edges;
+    // Frame 0 has an isometry term and no rigidity term.
+    let iso0 = if track.first == 0 {
+        let ge = g_edges.as_deref_mut();
+        isometry_until(track, edges, rest, (norm_i, scale_i), 1.min(track.frames), g, ge)
+    } else {
+        0.0
+    };
+    let parts = frame_windows(g, track.frames, 1, track.first, |ts, base, rows| {
+        let mut iso = Partial::new(want_e, ne, true);
+        let mut rig = Partial::new(want_e, ne, false);
+        for t1 in ts {
+            let (t0, r0, r1) = (t1 - 1, (t1 - 1 - base) * m, (t1 - base) * m);
+            for (i, run) in by_source(edges.src) {
+                let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
+                let c = q4::mul(a, q4::conj(b));
+                let rm = q4::to_rotmat(c);
+                let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+                let mut g_rm: M3 = [[0.0; 3]; 3];
+                let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
+                for e in run {
+                    let (j, w) = (edges.dst[e] as usize, edges.w[e]);
+                    let d0 = sub(track.p[track.at(t0, j)], pi0);
+                    let d1 = sub(track.p[track.at(t1, j)], pi1);
+                    let mut g_d1 = [0.0; 3];
+                    let r = sub(d0, q4::mat_vec(&rm, d1));
+                    if let Some(k) = rig.add_edge(e, w, norm3(r), norm_r, scale_r) {
+                        let gr = r.map(|x| x * k);
+                        g_d1 = q4::mat_t_vec(&rm, gr).map(|x| -x);
+                        q4::add_outer(&mut g_rm, gr.map(|x| -x), d1);
+                        add_to(&mut rows[r0 + j], 0, &gr);
+                        for c in 0..3 {
+                            g_pi0[c] -= gr[c];
+                        }
+                    }
+                    if let Some(gd) = iso.add_isometry(e, w, rest[e], d1, norm_i, scale_i) {
+                        for c in 0..3 {
+                            g_d1[c] += gd[c];
+                        }
+                    }
+                    add_to(&mut rows[r1 + j], 0, &g_d1);
+                    for c in 0..3 {
+                        g_pi1[c] -= g_d1[c];
                     }
                 }
-                if let Some((_, g_p)) = prev {
-                    chain(rows, t - 1, g_p);
-                }
-                prev = Some((r_t, g_t));
-            }
-            if let Some((_, g_p)) = prev {
-                chain(rows, ts.end - 1, g_p);
-            }
-        }
-        [v, a]
-    });
-    let [v, a] = parts.into_iter().fold([0.0; 2], |s, p| [s[0] + p[0], s[1] + p[1]]);
-    [norm_v * v, norm_a * a]
-}
-
-#[inline]
-fn add4(a: &mut Q, b: Q) {
-    for c in 0..4 {
-        a[c] += b[c];
-    }
-}
-
-/// The release's velocity (see [`smoothness`]).
-fn velocity_release(track: &Track, norm: f64, scale: f64, g: &mut TrackGrad) -> f64 {
-    let (nt, m) = (track.frames, track.m);
-    if nt < 2 || m == 0 {
-        return 0.0;
-    }
-    let scale = scale * norm;
-    let parts = frame_windows(g, nt, 1, track.first, |ts, base, rows| {
-        let mut v = 0.0;
-        for t in ts {
-            for k in 0..m {
-                let (i0, i1) = (track.at(t - 1, k), track.at(t, k));
-                let (r0, r1) = ((t - 1 - base) * m + k, (t - base) * m + k);
-                let d = sub(track.p[i1], track.p[i0]);
-                let dq = [0, 1, 2, 3].map(|c| track.q[i1][c] - track.q[i0][c]);
-                let (np, nq) = (3.0, 4.0);
-                v += d.iter().map(|x| x * x).sum::<f64>() / np;
-                v += dq.iter().map(|x| x * x).sum::<f64>() / nq;
-                let gd = d.map(|x| scale * 2.0 * x / np);
-                let gq = dq.map(|x| scale * 2.0 * x / nq);
-                add_to(&mut rows[r1], 0, &gd);
-                add_to(&mut rows[r0], 0, &gd.map(|x| -x));
-                add_to(&mut rows[r1], 3, &gq);
-                add_to(&mut rows[r0], 3, &gq.map(|x| -x));
+                let g_c = q4::to_rotmat_vjp(c, &g_rm);
+                let (g_a, g_bc) = q4::mul_vjp(a, q4::conj(b), g_c);
+                add_to(&mut rows[r0 + i], 0, &g_pi0);
+                add_to(&mut rows[r1 + i], 0, &g_pi1);
+                add_to(&mut rows[r0 + i], 7, &g_a);
+                add_to(&mut rows[r1 + i], 7, &q4::conj(g_bc));
             }
         }
-        v
+        (iso, rig)
     });
-    norm * parts.into_iter().sum::<f64>()
-}
-
-/// The release's acceleration (see [`smoothness`]).
-fn acceleration_release(track: &Track, norm: f64, scale: f64, g: &mut TrackGrad) -> f64 {
-    let (nt, m) = (track.frames, track.m);
-    if nt < 3 || m == 0 {
-        return 0.0;
-    }
-    let scale = scale * norm;
-    let parts = frame_windows(g, nt, 2, track.first, |ts, base, rows| {
-        let mut v = 0.0;
-        for t in ts {
-            for k in 0..m {
-                let ix = [track.at(t - 2, k), track.at(t - 1, k), track.at(t, k)];
-                let rw = [(t - 2 - base) * m + k, (t - 1 - base) * m + k, (t - base) * m + k];
-                let (p0, p1, p2) = (track.p[ix[0]], track.p[ix[1]], track.p[ix[2]]);
-                let d = [0, 1, 2].map(|c| p0[c] - 2.0 * p1[c] + p2[c]);
-                let (q0, q1, q2) = (track.q[ix[0]], track.q[ix[1]], track.q[ix[2]]);
-                let dq = [0, 1, 2, 3].map(|c| q0[c] - 2.0 * q1[c] + q2[c]);
-                let (lp, lq) = (norm3(d), q4::norm(dq));
-                v += lp + lq;
-                if lp > 0.0 {
-                    let gd = d.map(|x| scale * x / lp);
-                    add_to(&mut rows[rw[0]], 0, &gd);
-                    add_to(&mut rows[rw[1]], 0, &gd.map(|x| -2.0 * x));
-                    add_to(&mut rows[rw[2]], 0, &gd);
-                }
-                if lq > 0.0 {
-                    let gq = dq.map(|x| scale * x / lq);
-                    add_to(&mut rows[rw[0]], 3, &gq);
-                    add_to(&mut rows[rw[1]], 3, &gq.map(|x| -2.0 * x));
-                    add_to(&mut rows[rw[2]], 3, &gq);
-                }
-            }
-        }
-        v
-    });
-    norm * parts.into_iter().sum::<f64>()
+    let (iso, rig): (Vec<Partial>, Vec<Partial>) = parts.into_iter().unzip();
+    let iso = iso0 + reduce(iso, g_edges.as_deref_mut());
+    [iso, reduce(rig, g_edges)]
 }
 
 /// The vanilla recipe's motion-locality graph: each of the `positions` `[m, 3]` (the dynamic
@@ -843,10 +756,6 @@ mod tests {
         v += 0.7 * rigidity(tr, e, 3, 0.2, 0.7, &mut g, Some(&mut ge));
         v += relative_rotation(tr, e, 2, 0.5, 1.0, &mut g, Some(&mut ge));
         v += isometry(tr, e, rest, 0.4, 1.0, &mut g, Some(&mut ge));
-        for form in [MotionForm::Paper, MotionForm::Release] {
-            let [a, b] = smoothness(tr, form, (0.6, 1.0), (0.8, 1.0), &mut g);
-            v += a + b;
-        }
         (v, g, ge)
     }
 
@@ -901,35 +810,6 @@ mod tests {
         assert!(fails.is_empty(), "{}", fails.join("\n"));
     }
 
-    /// The paper form's values are the documented sums, evaluated directly.
-    #[test]
-    fn paper_smoothness_values_are_the_documented_sums() {
-        let (tr, ..) = case(3, 20, 4);
-        let mut g = TrackGrad::zeros(&tr);
-        let got = smoothness(&tr, MotionForm::Paper, (0.5, 1.0), (0.25, 1.0), &mut g);
-        let u = |t: usize, k: usize| tr.u[t * tr.m + k];
-        let p = |t: usize, k: usize| tr.p[t * tr.m + k];
-        let dev = |r: Q| {
-            let r = if r[0] < 0.0 { r.map(|x| -x) } else { r };
-            (r[0] - 1.0).abs() + r[1].abs() + r[2].abs() + r[3].abs()
-        };
-        let rel = |t: usize, k: usize| q4::mul(u(t - 1, k), q4::conj(u(t, k)));
-        let (mut v, mut a) = (0.0, 0.0);
-        for k in 0..tr.m {
-            for t in 1..tr.frames {
-                v += (0..3).map(|c| (p(t - 1, k)[c] - p(t, k)[c]).abs()).sum::<f64>();
-                v += dev(rel(t, k));
-                if t >= 2 {
-                    let d = |c: usize| p(t - 2, k)[c] - 2.0 * p(t - 1, k)[c] + p(t, k)[c];
-                    a += (0..3).map(|c| d(c).abs()).sum::<f64>();
-                    a += dev(q4::mul(rel(t - 1, k), q4::conj(rel(t, k))));
-                }
-            }
-        }
-        assert!((got[0] - 0.5 * v).abs() < 1e-12 * (1.0 + v), "{got:?} vs {v}");
-        assert!((got[1] - 0.25 * a).abs() < 1e-12 * (1.0 + a), "{got:?} vs {a}");
-    }
-
     #[test]
     fn streamed_frame_blocks_equal_the_whole_track() {
         let (t, m) = (23, 6);
@@ -949,8 +829,6 @@ mod tests {
                 rigidity(tr, e, 3, 0.2, 0.7, g, None),
                 relative_rotation(tr, e, 2, 0.5, 1.0, g, None),
                 isometry(tr, e, &rest, 0.4, 1.0, g, None),
-                smoothness(tr, MotionForm::Paper, (1.0, 1.0), (0.3, 0.5), g)[1],
-                smoothness(tr, MotionForm::Release, (0.2, 1.0), (0.1, 1.0), g)[0],
             ]
         };
         let whole = Track::gather(&poses, &nodes);
@@ -977,6 +855,54 @@ mod tests {
             assert_eq!(v.map(f64::to_bits), got.map(f64::to_bits), "{threads} threads");
             assert_eq!(g, got_g, "{threads} threads");
         }
+    }
+
+    /// The fused pass equals its two terms, on a whole track and on blocks with context.
+    #[test]
+    fn fused_isometry_rigidity_equals_the_two_terms() {
+        let (t, m) = (23, 6);
+        let (tr, src, dst, w, rest) = case(13, t, m);
+        let e = EdgeSet { src: &src, dst: &dst, w: &w };
+        let (iso, rig) = ((0.4, 0.7), (0.3, 1.3));
+        let (n, nodes) = (9, [7u32, 0, 3, 8, 2, 5]);
+        let mut poses = Poses::identity(t, n);
+        for f in 0..t {
+            for (k, &i) in nodes.iter().enumerate() {
+                poses.position[f * n + i as usize] = tr.p[f * m + k].map(|x| x as f32);
+                poses.rotation[f * n + i as usize] = tr.q[f * m + k].map(|x| x as f32);
+            }
+        }
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * (1.0 + b.abs());
+        for first in [0, 2] {
+            let tr = Track { first, ..tr.clone() };
+            let (mut g1, mut g2) = (TrackGrad::zeros(&tr), TrackGrad::zeros(&tr));
+            let (mut e1, mut e2) = (EdgeGrad::zeros(src.len()), EdgeGrad::zeros(src.len()));
+            let want = [
+                isometry(&tr, e, &rest, iso.0, iso.1, &mut g1, Some(&mut e1)),
+                rigidity(&tr, e, 1, rig.0, rig.1, &mut g1, Some(&mut e1)),
+            ];
+            let got = isometry_rigidity(&tr, e, &rest, iso, rig, &mut g2, Some(&mut e2));
+            assert!(close(got[0], want[0]) && close(got[1], want[1]), "{got:?} vs {want:?}");
+            assert!(want[0] > 0.0 && want[1] > 0.0);
+            let flat = |g: &TrackGrad| g.rows.iter().flatten().copied().collect::<Vec<f64>>();
+            assert!(flat(&g2).iter().zip(flat(&g1)).all(|(a, b)| close(*a, b)), "first {first}");
+            assert!(e2.w.iter().zip(&e1.w).all(|(a, b)| close(*a, *b)));
+            assert!(e2.rest.iter().zip(&e1.rest).all(|(a, b)| close(*a, *b)));
+        }
+        // streamed in blocks of 4 frames with one frame of context
+        let terms =
+            |tr: &Track, g: &mut TrackGrad| isometry_rigidity(tr, e, &rest, iso, rig, g, None);
+        let whole = Track::gather(&poses, &nodes);
+        let mut g = TrackGrad::zeros(&whole);
+        let want = terms(&whole, &mut g);
+        let mut want_g = PoseGrads::zeros(t, n);
+        g.scatter(&whole, &nodes, n, &mut want_g);
+        let mut got_g = PoseGrads::zeros(t, n);
+        let got = stream_frames_in(&poses, &nodes, 1, (4 * m, 3 * 5 * m), &mut got_g, terms);
+        assert!(close(got[0], want[0]) && close(got[1], want[1]), "{got:?} vs {want:?}");
+        let near = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+        assert!(near(got_g.position.as_flattened(), want_g.position.as_flattened()));
+        assert!(near(got_g.rotation.as_flattened(), want_g.rotation.as_flattened()));
     }
 
     #[test]

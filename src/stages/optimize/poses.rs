@@ -93,6 +93,16 @@ impl PoseGrads {
         self.position.fill([0.0; 3]);
         self.rotation.fill([0.0; 4]);
     }
+
+    /// Zero gradients for `frames` frames of `n` Gaussians, reusing the allocation (cleared
+    /// in parallel).
+    pub fn reset(&mut self, frames: usize, n: usize) {
+        use rayon::prelude::*;
+        self.position.resize(frames * n, [0.0; 3]);
+        self.rotation.resize(frames * n, [0.0; 4]);
+        self.position.par_chunks_mut(1 << 16).for_each(|c| c.fill([0.0; 3]));
+        self.rotation.par_chunks_mut(1 << 16).for_each(|c| c.fill([0.0; 4]));
+    }
 }
 
 #[cfg(test)]
@@ -114,5 +124,8 @@ mod tests {
         g.position[k][0] = 1.0;
         g.clear();
         assert_eq!(g, PoseGrads::zeros(3, 5));
+        g.position[k][0] = 1.0;
+        g.reset(2, 7);
+        assert_eq!(g, PoseGrads::zeros(2, 7));
     }
 }

@@ -71,6 +71,21 @@ impl StateGrads {
             sh_rest: vec![0.0; s.sh_rest.len()],
         }
     }
+
+    /// Zero gradients for `s`, reusing these buffers (a step's `[T, N]` pose gradients
+    /// would otherwise be fresh pages, faulted in and cleared by the kernel every step).
+    pub fn reset(&mut self, s: &TrainState) {
+        let n = s.n();
+        self.poses.reset(s.poses.frames, n);
+        for v in [&mut self.log_scale, &mut self.color] {
+            v.clear();
+            v.resize(n, [0.0; 3]);
+        }
+        self.logit_opacity.clear();
+        self.logit_opacity.resize(n, 0.0);
+        self.sh_rest.clear();
+        self.sh_rest.resize(s.sh_rest.len(), 0.0);
+    }
 }
 
 impl TrainState {

@@ -19,10 +19,19 @@ use crate::model::Model;
 use crate::render::{
     ColorSource, Cutoff, DifferentiableRenderer, RenderCamera, RenderSettings, ShFrame, SplatInputs,
 };
-use crate::scene::{Camera, Scene};
-use crate::tables::tracks_2d::Tracks2dReader;
+use crate::scene::{Camera, GtAlpha, Scene};
+use crate::tables::tracks_2d::{Tracks2dFrame, Tracks2dReader};
+use rayon::prelude::*;
+use std::borrow::Cow;
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
-/// The training view of each frame and where its ground truth lives.
+/// Bytes of decoded ground truth kept in memory; frames beyond it are read again each time.
+const TRUTH_CACHE_BYTES: usize = 1 << 30;
+
+/// The training view of each frame and where its ground truth lives. Decoded ground truth
+/// and 2D tracks are kept after their first read (images up to [`TRUTH_CACHE_BYTES`]), since
+/// every epoch reads every frame again.
 pub struct TrainingViews {
     /// `[T]` the scene's training cameras, index t is frame t.
     cameras: Vec<Camera>,
@@ -30,8 +39,16 @@ pub struct TrainingViews {
     render_cameras: Vec<Camera>,
     /// The scene directory the cameras' paths are relative to.
     scene: Scene,
+    /// How the scene's images' alpha is read.
+    gt_alpha: GtAlpha,
     /// The scene's 2D tracks in the training camera, if it has them.
     tracks: Option<Tracks2dReader>,
+    /// `[T]` decoded ground truth, with the background it was composited over.
+    truths: Vec<OnceLock<([f32; 3], FrameTruth)>>,
+    /// Bytes held in `truths`.
+    truth_bytes: AtomicUsize,
+    /// `[T]` decoded 2D tracks of each frame.
+    track_frames: Vec<OnceLock<Tracks2dFrame>>,
 }
 
 /// One training frame's ground truth, `[H, W]` images.
@@ -43,6 +60,14 @@ pub struct FrameTruth {
     pub mask: Option<Vec<f32>>,
     /// `[H, W]` prior z-depth (0 = invalid), when the camera has one.
     pub depth: Option<Vec<f32>>,
+}
+
+impl FrameTruth {
+    /// Bytes of its images.
+    fn bytes(&self) -> usize {
+        let len = |v: &Option<Vec<f32>>| v.as_ref().map_or(0, Vec::len);
+        4 * (self.rgb.len() + len(&self.mask) + len(&self.depth))
+    }
 }
 
 impl TrainingViews {
@@ -65,7 +90,17 @@ impl TrainingViews {
             );
         }
         let render_cameras = cameras.iter().map(|c| model.training_camera(c)).collect();
-        Ok(TrainingViews { cameras, render_cameras, scene: scene.clone(), tracks })
+        let frames = cameras.len();
+        Ok(TrainingViews {
+            cameras,
+            render_cameras,
+            scene: scene.clone(),
+            gt_alpha: scene.gt_alpha()?,
+            tracks,
+            truths: (0..frames).map(|_| OnceLock::new()).collect(),
+            truth_bytes: AtomicUsize::new(0),
+            track_frames: (0..frames).map(|_| OnceLock::new()).collect(),
+        })
     }
 
     /// Number of frames T.
@@ -85,10 +120,63 @@ impl TrainingViews {
     }
 
     /// Ground truth of frame `t` (colour over `background`, mask, depth); errors name the file.
-    pub fn truth(&self, t: usize, background: [f32; 3]) -> anyhow::Result<FrameTruth> {
+    /// Kept after the first read while the cache has room.
+    pub fn truth(&self, t: usize, background: [f32; 3]) -> anyhow::Result<Cow<'_, FrameTruth>> {
+        if let Some((bg, truth)) = self.truths[t].get()
+            && *bg == background
+        {
+            return Ok(Cow::Borrowed(truth));
+        }
+        let truth = self.read_truth(t, background)?;
+        let bytes = 4
+            * (truth.rgb.len()
+                + truth.mask.as_ref().map_or(0, Vec::len)
+                + truth.depth.as_ref().map_or(0, Vec::len));
+        let held = self.truth_bytes.load(Ordering::Relaxed);
+        if self.truths[t].get().is_none() && held + bytes <= TRUTH_CACHE_BYTES {
+            self.truth_bytes.store(held + bytes, Ordering::Relaxed);
+            let _ = self.truths[t].set((background, truth));
+            return Ok(Cow::Borrowed(&self.truths[t].get().expect("just set").1));
+        }
+        Ok(Cow::Owned(truth))
+    }
+
+    /// Read the ground truth of the first frames that fit the cache (over `background`, in
+    /// parallel) and every frame's 2D tracks, so that steps find them decoded; errors name
+    /// the file of the first failing frame.
+    pub fn preload(&self, background: [f32; 3]) -> anyhow::Result<()> {
+        let mut budget = TRUTH_CACHE_BYTES.saturating_sub(self.truth_bytes.load(Ordering::Relaxed));
+        let mut frames = Vec::new();
+        for (t, cam) in self.cameras.iter().enumerate() {
+            let planes = 3 + cam.mask_path.is_some() as usize + cam.depth_path.is_some() as usize;
+            let bytes = 4 * planes * cam.pinhole.width as usize * cam.pinhole.height as usize;
+            if self.truths[t].get().is_some() || bytes > budget {
+                continue;
+            }
+            budget -= bytes;
+            frames.push(t);
+        }
+        let read: Vec<anyhow::Result<FrameTruth>> =
+            frames.par_iter().map(|&t| self.read_truth(t, background)).collect();
+        for (&t, truth) in frames.iter().zip(read) {
+            let truth = truth?;
+            self.truth_bytes.fetch_add(truth.bytes(), Ordering::Relaxed);
+            let _ = self.truths[t].set((background, truth));
+        }
+        // one reader, one frame at a time (it reads a single open file)
+        if let Some(r) = &self.tracks {
+            for t in 0..self.len() {
+                self.track_frame(r, t)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// [`Self::truth`] read from the files.
+    fn read_truth(&self, t: usize, background: [f32; 3]) -> anyhow::Result<FrameTruth> {
         let cam = &self.cameras[t];
         let (w, h) = cam.pinhole.size();
-        let rgb = load_rgb(&self.scene, cam, background)?;
+        let rgb = load_rgb(&self.scene, cam, self.gt_alpha, background)?;
         let mask = match &cam.mask_path {
             Some(m) => {
                 let path = self.scene.resolve(m);
@@ -129,13 +217,27 @@ impl TrainingViews {
             TrackForm::Som { .. } => interval_weight(s, t, self.len()),
             TrackForm::Mosca { .. } => 1.0,
         };
-        Ok(tracks_between(&r.frame(s)?, &r.frame(t)?, w))
+        Ok(tracks_between(self.track_frame(r, s)?, self.track_frame(r, t)?, w))
+    }
+
+    /// The 2D tracks of frame `t`, decoded once.
+    fn track_frame(&self, r: &Tracks2dReader, t: usize) -> anyhow::Result<&Tracks2dFrame> {
+        if let Some(f) = self.track_frames[t].get() {
+            return Ok(f);
+        }
+        let _ = self.track_frames[t].set(r.frame(t)?);
+        Ok(self.track_frames[t].get().expect("just set"))
     }
 }
 
-fn load_rgb(scene: &Scene, cam: &Camera, background: [f32; 3]) -> anyhow::Result<Vec<f32>> {
+fn load_rgb(
+    scene: &Scene,
+    cam: &Camera,
+    alpha: GtAlpha,
+    background: [f32; 3],
+) -> anyhow::Result<Vec<f32>> {
     let path = &scene.resolve(&cam.image_path);
-    let img = scene.ground_truth_rgb(cam, background)?;
+    let img = alpha.rgb(&crate::formats::png::read_png(path)?, background);
     if img.width != cam.pinhole.width as usize || img.height != cam.pinhole.height as usize {
         anyhow::bail!(
             "{}: image is {}x{}, the camera of frame {} says {}x{}",
@@ -155,8 +257,6 @@ fn load_rgb(scene: &Scene, cam: &Camera, background: [f32; 3]) -> anyhow::Result
 pub struct ImageStep {
     /// Named, weighted loss terms ([`super::image_loss::TERMS`]), means over the batch frames.
     pub terms: Vec<(&'static str, f64)>,
-    /// Gradients of the batch-mean L_rgb.
-    pub grads: StateGrads,
     /// `[N]` Σ over batch views of |∂L_view/∂mean2d| in NDC units (visible Gaussians only).
     pub screen_grad: Vec<f32>,
     /// `[N]` number of batch views in which the Gaussian was visible.
@@ -164,8 +264,8 @@ pub struct ImageStep {
 }
 
 /// L_rgb and its gradients over the batch frames `batch` (frame indices, in order), rendered
-/// by `renderer` (the CPU, or the GPU that `--device` names); each phase's wall time is
-/// added to `timer`.
+/// by `renderer` (the CPU, or the GPU that `--device` names); `grads` is reset to the
+/// gradients of the batch-mean L_rgb. Each phase's wall time is added to `timer`.
 pub fn image_step<R: DifferentiableRenderer>(
     renderer: &R,
     state: &TrainState,
@@ -173,6 +273,7 @@ pub fn image_step<R: DifferentiableRenderer>(
     batch: &[usize],
     weights: &ImageLossWeights,
     settings: &RenderSettings,
+    grads: &mut StateGrads,
     timer: &mut PhaseTimes,
 ) -> anyhow::Result<ImageStep> {
     let n = state.n();
@@ -188,7 +289,7 @@ pub fn image_step<R: DifferentiableRenderer>(
             frame: ShFrame::World,
         }
     };
-    let mut grads = StateGrads::zeros(state);
+    grads.reset(state);
     let mut screen_grad = vec![0.0f32; n];
     let mut screen_count = vec![0u32; n];
     let mut terms: Vec<(&'static str, f64)> = Vec::new();
@@ -281,5 +382,5 @@ pub fn image_step<R: DifferentiableRenderer>(
         debug_assert_eq!(grads.sh_rest.len(), n * k3);
         timer.stop("chain to parameters", chain);
     }
-    Ok(ImageStep { terms, grads, screen_grad, screen_count })
+    Ok(ImageStep { terms, screen_grad, screen_count })
 }

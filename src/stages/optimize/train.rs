@@ -17,7 +17,7 @@ use super::graph_loss::GraphObjective;
 use super::objective::{GraphSource, KnnMotion, build_graph, trained_graph};
 use super::params::{OptimizeParams, OptimizeSettings, Recipe};
 use super::poses::Poses;
-use super::state::TrainState;
+use super::state::{StateGrads, TrainState};
 use super::step::{TrainingViews, image_step};
 use super::timing::PhaseTimes;
 use crate::context::Context;
@@ -316,18 +316,21 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context, cpu_time: bool) -> anyhow::R
         }
     }
     let render = RenderSettings::default();
+    views.preload(render.background)?;
     let renderer = crate::stages::device::renderer(ctx)?;
     let bar = ctx.progress(s.steps as u64, "optimize");
     bar.set_position(c.step as u64);
     let first_step = c.step;
     let mut times = PhaseTimes::default();
+    let mut grads = StateGrads::zeros(&c.state);
     while c.step < s.steps {
         let step = c.step;
         let started = Instant::now();
         let mut timer = if cpu_time { PhaseTimes::with_cpu_time() } else { PhaseTimes::default() };
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
-        let img = image_step(&renderer, &c.state, &views, &batch, &s.image, &render, &mut timer)?;
-        let mut grads = img.grads;
+        let img = image_step(
+            &renderer, &c.state, &views, &batch, &s.image, &render, &mut grads, &mut timer,
+        )?;
         let mut terms: Vec<(String, f64)> = Vec::new();
         terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
         let extra = match &mut objective {
