@@ -315,6 +315,24 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context, cpu_time: bool) -> anyhow::R
                 .ok_or_else(|| anyhow::anyhow!("{}: no kNN graph", ckpt_path.display()))?;
         }
     }
+    if let (Objective::Graph(o), 0) = (&mut objective, c.step) {
+        let bar = ctx.progress(s.graph.init.max_iters as u64, "graph init");
+        let started = Instant::now();
+        let r = o.initialise(&mut c.state.poses, &s.graph.init, s.seed, &|what, k| {
+            bar.set_message(what.to_string());
+            bar.set_position(k as u64);
+        });
+        bar.finish_and_clear();
+        ctx.info(format!(
+            "optimize: graph initialisation: non-key source poses {} iterations (loss {:.4}), \
+             keys {} iterations (loss {:.4}), {:.1} s",
+            r.nonkey_iters,
+            r.nonkey_loss,
+            r.key_iters,
+            r.key_loss,
+            started.elapsed().as_secs_f64()
+        ));
+    }
     let render = RenderSettings::default();
     let renderer = crate::stages::device::renderer(ctx)?;
     let bar = ctx.progress(s.steps as u64, "optimize");
