@@ -6,8 +6,8 @@
 //!    motions reproduces its prior trajectory: the DQB terms of Eq. 11 on seeded batches of
 //!    frames, the poses fixed.
 //! 2. Keys: fit the key trajectories and the learned key-edge tensors to the key anchor
-//!    (Eq. 9, weight 1 in every profile), the key edge terms (a seeded share of the edges
-//!    per iteration) and the acceleration over the keys.
+//!    (Eq. 9) and the key edge terms (a seeded share of the edges per iteration), both with
+//!    weight 1 in every profile, and the acceleration over the keys.
 //! 3. Every linked non-key's trajectory becomes the DQB of the fitted keys, at every frame
 //!    (the release's "final non-key trajectories").
 //!
@@ -179,7 +179,10 @@ impl GraphObjective {
             (motion::MotionForm::Paper, Reduction::Sum) => 1.0,
             _ => motion::smoothness_means(self.frames, keys.len()).1,
         };
+        // The prep weighs the key edge terms 1 (release: `L_rigid_extra` unscaled; paper:
+        // L^motion,key of Eq. 9), not fine-tuning's λ_graph·λ_key.
         let keep = std::mem::replace(&mut self.s.edge_keep_ratio, init.edge_keep_ratio);
+        let weight = std::mem::replace(&mut self.s.key_motion, 1.0);
         let (mut iters, mut loss) = (0, 0.0);
         while iters < init.max_iters {
             self.g_w_raw.fill(0.0);
@@ -219,6 +222,7 @@ impl GraphObjective {
             adam.groups.iter_mut().for_each(|g| g.lr = plateau.lr);
         }
         self.s.edge_keep_ratio = keep;
+        self.s.key_motion = weight;
         self.g_w_raw.fill(0.0);
         self.g_rest.fill(0.0);
         (iters, loss)
