@@ -16,7 +16,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::render::{ColorSource, ShFrame, SplatInputs};
-use crate::scene::Camera;
+use crate::scene::{Camera, Pinhole};
 pub use crate::tables::gaussians::Gaussians;
 use crate::tables::model_cameras::{self, ModelCamera, ModelCamerasTable, Similarity};
 pub use crate::tables::trajectories::FrameState;
@@ -143,14 +143,18 @@ impl Model {
         let Some(mc) = self.cameras.as_ref().and_then(|c| c.get(scene_cam.frame as usize)) else {
             return self.camera_in_model_frame(scene_cam);
         };
-        let sx = scene_cam.width as f64 / mc.width as f64;
-        let sy = scene_cam.height as f64 / mc.height as f64;
+        let (mc, sc) = (&mc.pinhole, &scene_cam.pinhole);
+        let sx = sc.width as f64 / mc.width as f64;
+        let sy = sc.height as f64 / mc.height as f64;
         Camera {
-            fx: mc.fx * sx,
-            fy: mc.fy * sy,
-            cx: mc.cx * sx,
-            cy: mc.cy * sy,
-            w2c: mc.w2c,
+            pinhole: Pinhole {
+                fx: mc.fx * sx,
+                fy: mc.fy * sy,
+                cx: mc.cx * sx,
+                cy: mc.cy * sy,
+                w2c: mc.w2c,
+                ..*sc
+            },
             distortion: None,
             ..scene_cam.clone()
         }
@@ -171,7 +175,10 @@ impl Model {
     /// through the scene-to-model similarity (unchanged when the model has none).
     pub fn camera_in_model_frame(&self, cam: &Camera) -> Camera {
         match &self.scene_to_model {
-            Some(sim) => Camera { w2c: sim.w2c_to_model(&cam.w2c), ..cam.clone() },
+            Some(sim) => {
+                let pinhole = Pinhole { w2c: sim.w2c_to_model(&cam.pinhole.w2c), ..cam.pinhole };
+                Camera { pinhole, ..cam.clone() }
+            }
             None => cam.clone(),
         }
     }

@@ -17,19 +17,20 @@ use crate::tables::{self, Provenance, Table};
 use crate::formats::png::Image;
 use crate::formats::{npy, png};
 use crate::render::RenderCamera;
-pub use crate::tables::cameras::{Camera, Split};
+pub use crate::tables::cameras::{Camera, Pinhole, Split};
+use crate::util::fs::IoError;
 
 /// The render camera of a scene camera (distortion is not rendered; near 0.01, far 1e10).
 impl From<&Camera> for RenderCamera {
     fn from(c: &Camera) -> Self {
         RenderCamera {
-            fx: c.fx as f32,
-            fy: c.fy as f32,
-            cx: c.cx as f32,
-            cy: c.cy as f32,
+            fx: c.pinhole.fx as f32,
+            fy: c.pinhole.fy as f32,
+            cx: c.pinhole.cx as f32,
+            cy: c.pinhole.cy as f32,
             w2c: c.w2c_mat().as_mat4(),
-            width: c.width,
-            height: c.height,
+            width: c.pinhole.width,
+            height: c.pinhole.height,
             near: 0.01,
             far: 1e10,
         }
@@ -210,7 +211,7 @@ impl Scene {
                     tracks_2d: "tracks_2d.parquet".into(),
                 });
             }
-            Err(cause) => return Err(tables::Error::Io { path, cause }),
+            Err(cause) => return Err(IoError { path, cause }.into()),
         };
         let json: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
             tables::Error::Mismatch { path: path.clone(), msg: format!("not valid JSON: {e}") }

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::model::{FrameState, Model, sample_model};
-use crate::scene::{Camera, Scene, Split};
+use crate::scene::{Camera, Pinhole, Scene, Split};
 use crate::tables::io::{self, TableReader};
 use crate::tables::*;
 
@@ -48,17 +48,19 @@ pub(crate) fn sample_cameras() -> Vec<Camera> {
             frame: i,
             camera: if i < 2 { "cam00".into() } else { "cam01".into() },
             split: if i < 2 { Split::Train } else { Split::Eval },
-            fx: 100.0 + i as f64,
-            fy: 101.0,
-            cx: 32.0,
-            cy: 24.0,
-            width: 64,
-            height: 48,
-            w2c: Camera::w2c_from_mat(glam::DMat4::from_translation(glam::DVec3::new(
-                0.0,
-                0.0,
-                3.0 + i as f64,
-            ))),
+            pinhole: Pinhole {
+                fx: 100.0 + i as f64,
+                fy: 101.0,
+                cx: 32.0,
+                cy: 24.0,
+                width: 64,
+                height: 48,
+                w2c: Camera::w2c_from_mat(glam::DMat4::from_translation(glam::DVec3::new(
+                    0.0,
+                    0.0,
+                    3.0 + i as f64,
+                ))),
+            },
             image_path: format!("rgb/cam00/{i:05}.png"),
             depth_path: (i == 0).then(|| "depth/cam00/00000.npy".to_string()),
             mask_path: None,
@@ -201,7 +203,7 @@ fn non_finite_list_items_name_their_row() {
     for (i, c) in cameras.iter_mut().enumerate() {
         c.frame = i as u32;
     }
-    cameras[8].w2c[3] = f64::NAN;
+    cameras[8].pinhole.w2c[3] = f64::NAN;
     cameras[9].distortion = Some([0.1, 0.0, 0.0, f64::INFINITY, 0.0]);
     // The error of loading a scene of `cameras`.
     let load_err = |cameras: &[Camera]| {
@@ -214,7 +216,7 @@ fn non_finite_list_items_name_their_row() {
         load_err(&cameras),
         format!("{}: column 'w2c', row 8: non-finite value NaN (item 3 of 16)", p.display())
     );
-    cameras[8].w2c[3] = 0.0;
+    cameras[8].pinhole.w2c[3] = 0.0;
     assert_eq!(
         load_err(&cameras),
         format!("{}: column 'distortion', row 9: non-finite value inf (item 3 of 5)", p.display())

@@ -45,7 +45,7 @@ fn windmill_camera_path_at_factor_2() {
     assert_eq!(c2.mask_path.as_deref(), Some("mask/2/00077.png"));
     assert_eq!(train[3].depth_path.as_deref(), Some("depth/0/00003.npy"));
     for c in &cams {
-        assert_eq!((c.width, c.height), (360, 480));
+        assert_eq!((c.pinhole.width, c.pinhole.height), (360, 480));
         assert_eq!(c.distortion, None);
         let r = c.rotation();
         let dev = (r * r.transpose() - glam::DMat3::IDENTITY).to_cols_array();
@@ -54,8 +54,11 @@ fn windmill_camera_path_at_factor_2() {
     }
     let raw = DycheckCamera::read(&dir.join("camera/1_00000.json"), None).unwrap();
     let c1 = cams.iter().find(|c| c.camera == "1" && c.frame == 0).unwrap();
-    assert_eq!((c1.fx, c1.fy), (raw.focal_length / 2.0, raw.focal_length / 2.0));
-    assert_eq!((c1.cx, c1.cy), (raw.principal_point[0] / 2.0, raw.principal_point[1] / 2.0));
+    assert_eq!((c1.pinhole.fx, c1.pinhole.fy), (raw.focal_length / 2.0, raw.focal_length / 2.0));
+    assert_eq!(
+        (c1.pinhole.cx, c1.pinhole.cy),
+        (raw.principal_point[0] / 2.0, raw.principal_point[1] / 2.0)
+    );
     assert!((c1.center() - glam::DVec3::from_array(raw.position)).length() < 1e-9);
 }
 
@@ -96,9 +99,9 @@ fn windmill_cameras_only_import() {
     assert_eq!((scene.train().count(), scene.eval().count()), (277, 419));
     let raw = read_json(&data.join("camera/0_00010.json"));
     let c = scene.train_by_frame()[10];
-    assert_eq!((c.width, c.height), (360, 480));
-    assert_eq!(c.fx, raw["focal_length"].as_f64().unwrap() / 2.0);
-    assert_eq!(c.cy, raw["principal_point"][1].as_f64().unwrap() / 2.0);
+    assert_eq!((c.pinhole.width, c.pinhole.height), (360, 480));
+    assert_eq!(c.pinhole.fx, raw["focal_length"].as_f64().unwrap() / 2.0);
+    assert_eq!(c.pinhole.cy, raw["principal_point"][1].as_f64().unwrap() / 2.0);
     let pos: Vec<f64> =
         raw["position"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     assert!((c.center() - glam::DVec3::new(pos[0], pos[1], pos[2])).length() < 1e-9);
@@ -119,7 +122,7 @@ fn windmill_cameras_only_import() {
     assert_eq!(code, 0);
     let norm = Scene::load(&out2).unwrap();
     let c2 = norm.train_by_frame()[10];
-    assert_eq!((c2.width, c2.height), (180, 240));
+    assert_eq!((c2.pinhole.width, c2.pinhole.height), (180, 240));
     let center: Vec<f64> = meta["dycheck_scene"]["center"]
         .as_array()
         .unwrap()
@@ -146,7 +149,7 @@ fn hand_made_scene(data: &Path, dir: &Path) -> Scene {
         .collect();
     assert_eq!(cams.len(), 8);
     for (k, c) in cams.iter().enumerate() {
-        let (w, h) = (c.width as usize, c.height as usize);
+        let (w, h) = c.pinhole.size();
         formats::png::write_png(&dir.join(&c.image_path), &pattern(w, h, k, 4)).unwrap();
         if let Some(d) = &c.depth_path {
             let depth: Vec<f32> = (0..w * h)
@@ -198,14 +201,28 @@ fn layout_round_trip() {
     for (a, b) in scene.cameras.iter().zip(&back.cameras) {
         assert_eq!((&a.camera, a.frame, a.split), (&b.camera, b.frame, b.split));
         assert_eq!(
-            (a.fx, a.fy, a.cx, a.cy, a.width, a.height),
-            (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+            (
+                a.pinhole.fx,
+                a.pinhole.fy,
+                a.pinhole.cx,
+                a.pinhole.cy,
+                a.pinhole.width,
+                a.pinhole.height
+            ),
+            (
+                b.pinhole.fx,
+                b.pinhole.fy,
+                b.pinhole.cx,
+                b.pinhole.cy,
+                b.pinhole.width,
+                b.pinhole.height
+            )
         );
         assert!(
-            a.w2c.iter().zip(&b.w2c).all(|(x, y)| (x - y).abs() < 1e-12),
+            a.pinhole.w2c.iter().zip(&b.pinhole.w2c).all(|(x, y)| (x - y).abs() < 1e-12),
             "{:?} vs {:?}",
-            a.w2c,
-            b.w2c
+            a.pinhole.w2c,
+            b.pinhole.w2c
         );
         assert_eq!(
             (&a.image_path, &a.depth_path, &a.mask_path),
@@ -260,7 +277,10 @@ fn layout_round_trip() {
     assert_eq!(code, 0);
     let full = Scene::load(&full_dir).unwrap();
     let (a, b) = (&scene.cameras[5], &full.cameras[5]);
-    assert_eq!((b.width, b.height, b.fx), (2 * a.width, 2 * a.height, 2.0 * a.fx));
+    assert_eq!(
+        (b.pinhole.width, b.pinhole.height, b.pinhole.fx),
+        (2 * a.pinhole.width, 2 * a.pinhole.height, 2.0 * a.pinhole.fx)
+    );
     let m = formats::png::read_png(&full.resolve(b.mask_path.as_ref().unwrap())).unwrap();
     assert_eq!((m.width, m.height), (180, 240));
 }

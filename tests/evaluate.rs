@@ -10,7 +10,7 @@ use std::process::Output;
 use crate::util::bin;
 
 use usplat4d::formats::png::{Image, read_png, write_png};
-use usplat4d::scene::{Camera, Scene, Split};
+use usplat4d::scene::{Camera, Pinhole, Scene, Split};
 use usplat4d::tables::Provenance;
 
 const W: usize = 40;
@@ -27,22 +27,11 @@ fn evaluate(renders: &Path, scene: &Path, out: &Path, extra: &[&str]) -> Output 
 }
 
 fn camera(name: &str, frame: u32, split: Split, angle: Option<f32>, mask: bool) -> Camera {
+    let w2c = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0];
     Camera {
-        frame,
-        camera: name.into(),
-        split,
-        fx: 50.0,
-        fy: 50.0,
-        cx: W as f64 / 2.0,
-        cy: H as f64 / 2.0,
-        width: W as u32,
-        height: H as u32,
-        w2c: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0],
-        image_path: format!("rgb/{name}/{frame:05}.png"),
-        depth_path: None,
         mask_path: mask.then(|| format!("mask/{name}/{frame:05}.png")),
         angle_offset_deg: angle,
-        distortion: None,
+        ..Camera::new(frame, name, split, Pinhole::centred(50.0, W as u32, H as u32, w2c))
     }
 }
 

@@ -133,10 +133,14 @@ fn som_f64_and_f32(d: &Path, ckpt: &str, expected: &str, full: bool) {
         check(&flat3(&som.bg.colors), &floats(&e, &k("bg_colors")), tol, &k("bg_colors"));
     }
     let cams = som.cameras(None);
-    let ks: Vec<f64> =
-        cams.iter().flat_map(|c| [c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0]).collect();
+    let ks: Vec<f64> = cams
+        .iter()
+        .flat_map(|c| {
+            [c.pinhole.fx, 0.0, c.pinhole.cx, 0.0, c.pinhole.fy, c.pinhole.cy, 0.0, 0.0, 1.0]
+        })
+        .collect();
     check(&ks, &floats(&e, "Ks"), 0.0, "Ks");
-    let w2c: Vec<f64> = cams.iter().flat_map(|c| c.w2c).collect();
+    let w2c: Vec<f64> = cams.iter().flat_map(|c| c.pinhole.w2c).collect();
     check(&w2c, &floats(&e, "w2cs"), 0.0, "w2cs");
 }
 
@@ -227,12 +231,12 @@ fn mosca_logdir_equals_mosca() {
     let t_wc: Vec<f64> = m.t_wc.iter().flatten().copied().collect();
     check(&t_wc, &floats(&e, "cam_T_wc"), 1e-6, "cam_T_wc");
     let cams = m.cameras(None);
-    let t_cw: Vec<f64> = cams.iter().flat_map(|c| c.w2c).collect();
+    let t_cw: Vec<f64> = cams.iter().flat_map(|c| c.pinhole.w2c).collect();
     check(&t_cw, &floats(&e, "cam_T_cw"), 1e-5, "cam_T_cw");
     let kmat = |k: [f64; 4]| vec![k[0], 0.0, k[2], 0.0, k[1], k[3], 0.0, 0.0, 1.0];
-    assert_eq!((cams[0].width, cams[0].height), (64, 48));
+    assert_eq!((cams[0].pinhole.width, cams[0].pinhole.height), (64, 48));
     check(
-        &kmat([cams[0].fx, cams[0].fy, cams[0].cx, cams[0].cy]),
+        &kmat([cams[0].pinhole.fx, cams[0].pinhole.fy, cams[0].pinhole.cx, cams[0].pinhole.cy]),
         &floats(&e, "cam_K_default"),
         1e-4,
         "cam_K_default",
@@ -579,22 +583,8 @@ fn imported_mosca_runs_through_the_graph_stages() {
         .as_ref()
         .unwrap()
         .iter()
-        .map(|c| usplat4d::scene::Camera {
-            frame: c.frame,
-            camera: "0".into(),
-            split: usplat4d::scene::Split::Train,
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            width: c.width,
-            height: c.height,
-            w2c: c.w2c,
-            image_path: format!("rgb/0/{:05}.png", c.frame),
-            depth_path: None,
-            mask_path: None,
-            angle_offset_deg: None,
-            distortion: None,
+        .map(|c| {
+            usplat4d::scene::Camera::new(c.frame, "0", usplat4d::scene::Split::Train, c.pinhole)
         })
         .collect();
     let scene = usplat4d::scene::Scene { dir: dir.join("s"), cameras };

@@ -107,7 +107,7 @@ fn stages_render_with_the_models_own_cameras() {
     // the optimiser renders its training views with the model's cameras
     let moved = Model::load(&dir.join("moved")).unwrap();
     let views = TrainingViews::new(&scene, &moved).unwrap();
-    let want = sim.w2c_to_model(&scene.train_by_frame()[1].w2c);
+    let want = sim.w2c_to_model(&scene.train_by_frame()[1].pinhole.w2c);
     let got = views.training_camera(1).w2c.to_cols_array();
     for i in 0..4 {
         for j in 0..4 {

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use glam::{DMat4, DVec3};
 
 use crate::model::{FrameState, Gaussians, Model};
-use crate::scene::{Camera, Scene, Split};
+use crate::scene::{Camera, Pinhole, Scene, Split};
 use crate::tables::{self, Provenance};
 
 /// Write a hand-made scene and model for tests and demos into `dir/scene` and `dir/model`:
@@ -23,22 +23,10 @@ pub fn write_demo_scene(dir: &Path, frames: u32) -> tables::Result<(PathBuf, Pat
             // OpenCV axes: look at the origin, y down.
             let c2w_gl = DMat4::look_at_rh(eye, DVec3::ZERO, DVec3::NEG_Y).inverse();
             let w2c = (c2w_gl * DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0))).inverse();
+            let pinhole = Pinhole::centred(60.0, 80, 60, Camera::w2c_from_mat(w2c));
             cameras.push(Camera {
-                frame,
-                camera: name.into(),
-                split,
-                fx: 60.0,
-                fy: 60.0,
-                cx: 40.0,
-                cy: 30.0,
-                width: 80,
-                height: 60,
-                w2c: Camera::w2c_from_mat(w2c),
-                image_path: format!("rgb/{name}/{frame:05}.png"),
-                depth_path: None,
-                mask_path: None,
                 angle_offset_deg: Some(angle as f32),
-                distortion: None,
+                ..Camera::new(frame, name, split, pinhole)
             });
         }
     }

@@ -12,18 +12,15 @@ pub mod torch;
 
 use std::path::PathBuf;
 
+use crate::util::fs::IoError;
+
 /// Errors of reading or writing image and array files; each names the file.
 #[non_exhaustive]
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// File system error.
-    #[error("{}: {cause}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        cause: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] IoError),
     /// The image could not be decoded or encoded.
     #[error("{}: {cause}", path.display())]
     Image {
@@ -44,9 +41,3 @@ pub enum Error {
 
 /// Result alias of this module.
 pub type Result<T> = std::result::Result<T, Error>;
-
-impl From<crate::util::fs::WriteError> for Error {
-    fn from(e: crate::util::fs::WriteError) -> Self {
-        Error::Io { path: e.path, cause: e.source }
-    }
-}

@@ -4,7 +4,7 @@ use std::io::Read;
 use std::path::Path;
 
 use super::{Error, Result};
-use crate::util::fs::write_atomic;
+use crate::util::fs::{IoError, write_atomic};
 
 /// Write a float32 array of `shape` (C order) as `.npy` version 1.0, atomically.
 pub fn write_npy_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<()> {
@@ -37,7 +37,7 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
     let mut bytes = Vec::new();
     std::fs::File::open(path)
         .and_then(|mut f| f.read_to_end(&mut bytes))
-        .map_err(|source| Error::Io { path: path.into(), cause: source })?;
+        .map_err(IoError::at(path))?;
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(npy("not a .npy file (bad magic)".into()));
     }

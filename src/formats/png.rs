@@ -7,7 +7,7 @@ use std::path::Path;
 use image::ImageEncoder;
 
 use super::{Error, Result};
-use crate::util::fs::write_atomic;
+use crate::util::fs::{IoError, write_atomic};
 
 /// A float image `[H, W, C]`, values in [0, 1].
 #[derive(Debug, Clone, PartialEq)]
@@ -75,9 +75,9 @@ impl Image {
 /// channel count (grey+alpha becomes RGBA).
 pub fn read_png(path: &Path) -> Result<Image> {
     let img = image::ImageReader::open(path)
-        .map_err(|source| Error::Io { path: path.into(), cause: source })?
+        .map_err(IoError::at(path))?
         .with_guessed_format()
-        .map_err(|source| Error::Io { path: path.into(), cause: source })?
+        .map_err(IoError::at(path))?
         .decode()
         .map_err(|source| Error::Image { path: path.into(), cause: source })?;
     let (w, h) = (img.width() as usize, img.height() as usize);

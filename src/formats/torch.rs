@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 
 use super::array::{Array, DType};
 use super::pickle::{self, PickleError, Value as Pv};
+use crate::util::fs::IoError;
 
 /// The globals a checkpoint's pickle may name; anything else is refused.
 pub const ALLOWED_GLOBALS: &[(&str, &str)] = &[
@@ -45,13 +46,8 @@ pub const ALLOWED_GLOBALS: &[(&str, &str)] = &[
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be read.
-    #[error("{}: {cause}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        cause: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] IoError),
     /// The file is not a zip-format PyTorch checkpoint.
     #[error("{}: not a PyTorch checkpoint: {msg}", path.display())]
     NotCheckpoint {
@@ -277,8 +273,7 @@ struct Decoder<'a> {
 impl Checkpoint {
     /// Read and decode the checkpoint file `path`.
     pub fn open(path: &Path) -> Result<Checkpoint> {
-        let bytes =
-            std::fs::read(path).map_err(|cause| Error::Io { path: path.to_path_buf(), cause })?;
+        let bytes = std::fs::read(path).map_err(IoError::at(path))?;
         Self::from_bytes(path, &bytes)
     }
 

@@ -100,14 +100,14 @@ pub fn align_to_scene(
             train.len()
         );
     }
-    let size = (train[0].width, train[0].height);
-    if let Some(c) = train.iter().find(|c| (c.width, c.height) != size) {
+    let size = (train[0].pinhole.width, train[0].pinhole.height);
+    if let Some(c) = train.iter().find(|c| (c.pinhole.width, c.pinhole.height) != size) {
         anyhow::bail!(
             "{}: training frame {} is {}x{}, frame 0 is {}x{}: one image size is expected",
             Scene::cameras_path(scene_dir).display(),
             c.frame,
-            c.width,
-            c.height,
+            c.pinhole.width,
+            c.pinhole.height,
             size.0,
             size.1
         );
@@ -138,7 +138,7 @@ pub fn fit_similarity(scene: &[&Camera], model: &[ModelCamera]) -> (Similarity, 
     let mut qsum = [0.0; 4];
     let mut first: Option<[f64; 4]> = None;
     for i in 0..n {
-        let r = q4::matmul(transpose(rot_of(&model[i].w2c)), rot_of(&scene[i].w2c));
+        let r = q4::matmul(transpose(rot_of(&model[i].pinhole.w2c)), rot_of(&scene[i].pinhole.w2c));
         let mut q = q4::from_rotmat(&r);
         let f = *first.get_or_insert(q);
         if (0..4).map(|k| q[k] * f[k]).sum::<f64>() < 0.0 {
@@ -147,8 +147,9 @@ pub fn fit_similarity(scene: &[&Camera], model: &[ModelCamera]) -> (Similarity, 
         (0..4).for_each(|k| qsum[k] += q[k]);
     }
     let rot = q4::quat_to_mat(q4::normalize4(if n == 0 { [1.0, 0.0, 0.0, 0.0] } else { qsum }));
-    let a: Vec<[f64; 3]> = (0..n).map(|i| q4::mat_vec(&rot, center_of(&scene[i].w2c))).collect();
-    let b: Vec<[f64; 3]> = (0..n).map(|i| center_of(&model[i].w2c)).collect();
+    let a: Vec<[f64; 3]> =
+        (0..n).map(|i| q4::mat_vec(&rot, center_of(&scene[i].pinhole.w2c))).collect();
+    let b: Vec<[f64; 3]> = (0..n).map(|i| center_of(&model[i].pinhole.w2c)).collect();
     let mean = |v: &[[f64; 3]]| -> [f64; 3] {
         std::array::from_fn(|k| v.iter().map(|x| x[k]).sum::<f64>() / v.len().max(1) as f64)
     };
@@ -182,15 +183,15 @@ pub fn fit_similarity(scene: &[&Camera], model: &[ModelCamera]) -> (Similarity, 
         .sqrt()
         .max(1e-12);
     for i in 0..n {
-        let mapped = sim.w2c_to_model(&scene[i].w2c);
-        let r = q4::matmul(transpose(rot_of(&mapped)), rot_of(&model[i].w2c));
+        let mapped = sim.w2c_to_model(&scene[i].pinhole.w2c);
+        let r = q4::matmul(transpose(rot_of(&mapped)), rot_of(&model[i].pinhole.w2c));
         let cos = ((r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
         max_deg = max_deg.max(cos.acos().to_degrees());
         let c = center_of(&mapped);
         let d = (0..3).map(|k| (c[k] - b[i][k]).powi(2)).sum::<f64>().sqrt();
         max_centre = max_centre.max(d / path);
-        let sx = scene[i].width as f64 / model[i].width as f64;
-        max_focal = max_focal.max((model[i].fx * sx / scene[i].fx - 1.0).abs());
+        let sx = scene[i].pinhole.width as f64 / model[i].pinhole.width as f64;
+        max_focal = max_focal.max((model[i].pinhole.fx * sx / scene[i].pinhole.fx - 1.0).abs());
     }
     if max_deg > 0.5 {
         report.push(format!("camera orientations differ by up to {max_deg:.2}° after alignment"));
@@ -219,26 +220,10 @@ pub(crate) fn par_map<T: Send>(n: usize, f: impl Fn(usize) -> T + Sync + Send) -
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::Split;
+    use crate::scene::{Pinhole, Split};
 
     fn cam(frame: u32, w2c: [f64; 16]) -> Camera {
-        Camera {
-            frame,
-            camera: "0".into(),
-            split: Split::Train,
-            fx: 50.0,
-            fy: 50.0,
-            cx: 32.0,
-            cy: 24.0,
-            width: 64,
-            height: 48,
-            w2c,
-            image_path: String::new(),
-            depth_path: None,
-            mask_path: None,
-            angle_offset_deg: None,
-            distortion: None,
-        }
+        Camera::new(frame, "0", Split::Train, Pinhole::centred(50.0, 64, 48, w2c))
     }
 
     #[test]

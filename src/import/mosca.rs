@@ -28,6 +28,7 @@ use crate::math::quat64::{self as q4, M3};
 use crate::model::Gaussians;
 use crate::render::ShFrame;
 use crate::tables::Provenance;
+use crate::tables::cameras::Pinhole;
 use crate::tables::model_cameras::{ModelCamera, Similarity};
 
 use super::{BaseModel, Poses, par_map};
@@ -593,13 +594,7 @@ impl BaseModel for Mosca {
             .enumerate()
             .map(|(t, m)| ModelCamera {
                 frame: t as u32,
-                fx,
-                fy,
-                cx,
-                cy,
-                width,
-                height,
-                w2c: rigid_inverse(m),
+                pinhole: Pinhole { fx, fy, cx, cy, width, height, w2c: rigid_inverse(m) },
             })
             .collect()
     }

@@ -18,6 +18,7 @@ use crate::math::{quat64 as q4, rot6d};
 use crate::model::Gaussians;
 use crate::render::ShFrame;
 use crate::tables::Provenance;
+use crate::tables::cameras::Pinhole;
 use crate::tables::model_cameras::{ModelCamera, Similarity};
 
 use super::{BaseModel, Poses, par_map};
@@ -263,13 +264,7 @@ impl BaseModel for Som {
                 w2c.copy_from_slice(&self.w2cs[t * 16..t * 16 + 16]);
                 ModelCamera {
                     frame: t as u32,
-                    fx: k[0],
-                    fy: k[4],
-                    cx: k[2],
-                    cy: k[5],
-                    width,
-                    height,
-                    w2c,
+                    pinhole: Pinhole { fx: k[0], fy: k[4], cx: k[2], cy: k[5], width, height, w2c },
                 }
             })
             .collect()

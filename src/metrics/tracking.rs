@@ -277,8 +277,10 @@ pub fn track_3d(
             .iter()
             .map(|p| {
                 let (x, y, _) = scam.project(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))?;
-                let inside =
-                    x >= 0.0 && y >= 0.0 && x < scam.width as f64 && y < scam.height as f64;
+                let inside = x >= 0.0
+                    && y >= 0.0
+                    && x < scam.pinhole.width as f64
+                    && y < scam.pinhole.height as f64;
                 inside.then_some([x as f32, y as f32])
             })
             .collect();
@@ -363,7 +365,12 @@ pub fn pck_t_model(
                 })
                 .collect();
             let valid: Vec<bool> = (0..j).map(|m| vs[m] && vt[m]).collect();
-            pairs.push(score_pair(&pred, pt, &valid, &[pck_t_threshold(tcam.width, tcam.height)]));
+            pairs.push(score_pair(
+                &pred,
+                pt,
+                &valid,
+                &[pck_t_threshold(tcam.pinhole.width, tcam.pinhole.height)],
+            ));
         }
     }
     Ok(average_pairs(&pairs))

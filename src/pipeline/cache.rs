@@ -47,7 +47,7 @@ pub fn remove_path(p: &Path) -> Result<(), Error> {
         Ok(m) if m.is_dir() => std::fs::remove_dir_all(p).map_err(Error::io(p)),
         Ok(_) => std::fs::remove_file(p).map_err(Error::io(p)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-        Err(e) => Err(Error::Io { path: p.into(), source: e }),
+        Err(e) => Err(Error::io(p)(e)),
     }
 }
 
@@ -60,7 +60,7 @@ pub fn sweep_restores(dir: &Path) -> Result<(), Error> {
     let entries = match std::fs::read_dir(dir) {
         Ok(e) => e,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-        Err(e) => return Err(Error::Io { path: dir.into(), source: e }),
+        Err(e) => return Err(Error::io(dir)(e)),
     };
     for e in entries {
         let e = e.map_err(Error::io(dir))?;
@@ -69,7 +69,7 @@ pub fn sweep_restores(dir: &Path) -> Result<(), Error> {
             .to_str()
             .and_then(|n| n.strip_prefix(RESTORE_PREFIX))
             .is_some_and(|r| r.len() == 6 && r.bytes().all(|b| b.is_ascii_alphanumeric()));
-        if staged && e.file_type().map_err(Error::io(e.path()))?.is_dir() {
+        if staged && e.file_type().map_err(Error::io(&e.path()))?.is_dir() {
             remove_path(&e.path())?;
         }
     }
@@ -146,7 +146,7 @@ impl RunCache {
                     .tempfile_in(&dir)
                     .map_err(Error::io(&dir))?;
                 std::fs::copy(&src, tmp.path()).map_err(Error::io(&src))?;
-                tmp.persist(&obj).map_err(|e| Error::Io { path: obj.clone(), source: e.error })?;
+                tmp.persist(&obj).map_err(|e| Error::io(&obj)(e.error))?;
             }
         }
         self.write_manifest(key, &Manifest { outs: outs.clone(), last_used_ns: now_ns() })?;
@@ -177,7 +177,7 @@ impl RunCache {
             if tree.is_dir {
                 std::fs::create_dir(&staged).map_err(Error::io(&staged))?;
                 for d in &tree.dirs {
-                    std::fs::create_dir_all(staged.join(d)).map_err(Error::io(staged.join(d)))?;
+                    std::fs::create_dir_all(staged.join(d)).map_err(Error::io(&staged.join(d)))?;
                 }
             }
             for f in &tree.files {

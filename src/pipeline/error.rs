@@ -1,20 +1,17 @@
 //! The typed error of the pipeline runner: every variant names the pipeline file and the
 //! stage, key or path it is about. `run_command` converts it to `anyhow` at the top.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+use crate::util::fs::IoError;
 
 /// Everything that can go wrong loading, planning or running a pipeline.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum Error {
     /// The file could not be read or written.
-    #[error("{}: {source}", path.display())]
-    Io {
-        /// The file or directory.
-        path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] IoError),
     /// The YAML is malformed or does not match the schema (unknown key, wrong type); the
     /// message comes from serde-saphyr and carries the line and column.
     #[error("{}: {message}", file.display())]
@@ -111,14 +108,7 @@ pub enum Error {
 
 impl Error {
     /// An I/O error on `path`.
-    pub fn io(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> Error {
-        let path = path.into();
-        move |source| Error::Io { path, source }
-    }
-}
-
-impl From<crate::util::fs::WriteError> for Error {
-    fn from(e: crate::util::fs::WriteError) -> Self {
-        Error::Io { path: e.path, source: e.source }
+    pub fn io<P: AsRef<Path> + ?Sized>(path: &P) -> impl Fn(std::io::Error) -> Error + Copy {
+        move |cause| Error::Io(IoError::at(path)(cause))
     }
 }

@@ -140,8 +140,7 @@ impl Hasher {
         if let Some(t) = &self.tool {
             return Ok(t.clone());
         }
-        let exe = std::env::current_exe()
-            .map_err(|e| Error::Io { path: "(the running executable)".into(), source: e })?;
+        let exe = std::env::current_exe().map_err(Error::io("(the running executable)"))?;
         let hash = self.hash(&exe)?.map(|t| t.hash).unwrap_or_default();
         let mut id = format!("{}+{}", crate::VERSION, &hash[..hash.len().min(16)]);
         if !self.device.is_empty() {
@@ -156,7 +155,7 @@ impl Hasher {
         let meta = match std::fs::metadata(path) {
             Ok(m) => m,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(Error::Io { path: path.into(), source: e }),
+            Err(e) => return Err(Error::io(path)(e)),
         };
         let (mut files, mut dirs) = (Vec::new(), Vec::new());
         if meta.is_dir() {

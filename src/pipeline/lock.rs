@@ -59,7 +59,7 @@ impl Lock {
                     path: path.into(),
                 });
             }
-            Err(e) => return Err(Error::Io { path: path.into(), source: e }),
+            Err(e) => return Err(Error::io(path)(e)),
         };
         let mut lock: Lock = serde_json::from_slice(&bytes).map_err(|e| Error::BadState {
             path: path.into(),

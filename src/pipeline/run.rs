@@ -172,7 +172,7 @@ impl<'a> Runner<'a> {
         ctx: &Context,
         out: &mut dyn Write,
     ) -> Result<Vec<(usize, Outcome)>, Error> {
-        let io = |e| Error::Io { path: "<stdout>".into(), source: e };
+        let io = Error::io("<stdout>");
         if opts.dry_run {
             let plan = self.plan(opts)?;
             for (i, o) in &plan {
@@ -217,7 +217,7 @@ impl<'a> Runner<'a> {
         ctx: &Context,
         out: &mut dyn Write,
     ) -> Result<Outcome, Error> {
-        let io = |e| Error::Io { path: "<stdout>".into(), source: e };
+        let io = Error::io("<stdout>");
         let p = self.p;
         let stage = &p.stages[i];
         let cur = status::current(p, stage, &mut self.hasher)?;
@@ -320,7 +320,7 @@ impl<'a> Runner<'a> {
 
     /// `pipeline status`: one line per stage, `name: up to date` or `name: <reasons>`.
     pub fn status(&mut self, out: &mut dyn Write) -> Result<(), Error> {
-        let io = |e| Error::Io { path: "<stdout>".into(), source: e };
+        let io = Error::io("<stdout>");
         let plan = self.plan(&RunOptions::default())?;
         for (i, o) in &plan {
             let name = &self.p.stages[*i].name;
@@ -341,7 +341,7 @@ impl<'a> Runner<'a> {
     /// `pipeline dag`: stages in topological order with their upstream edges, as text or
     /// Graphviz dot.
     pub fn dag(&self, dot: bool, out: &mut dyn Write) -> Result<(), Error> {
-        let io = |e| Error::Io { path: "<stdout>".into(), source: e };
+        let io = Error::io("<stdout>");
         let name = |i: usize| &self.p.stages[i].name;
         if dot {
             writeln!(out, "digraph pipeline {{").map_err(io)?;

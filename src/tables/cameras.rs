@@ -12,7 +12,7 @@ use std::sync::Arc;
 use arrow::array::{
     Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, StringArray, UInt32Array,
 };
-use arrow::datatypes::{DataType, Float32Type, Float64Type, Schema, SchemaRef, UInt32Type};
+use arrow::datatypes::{DataType, Field, Float32Type, Float64Type, Schema, SchemaRef, UInt32Type};
 
 use super::io::{Columns, Table, TableReader, batch, field, fixed_list, nullable, write_table};
 use super::{Error, Provenance, Result, validate};
@@ -46,15 +46,11 @@ impl Split {
     }
 }
 
-/// One image's camera: a pinhole with optional distortion, OpenCV axes.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Camera {
-    /// Time index 0..T-1 of the training video this image was taken at.
-    pub frame: u32,
-    /// Camera name (e.g. `"0"` for the training camera).
-    pub camera: String,
-    /// Train or eval.
-    pub split: Split,
+/// A pinhole camera: intrinsics in pixels of a `width`×`height` image and the
+/// world-to-camera pose, OpenCV axes (the columns `fx` to `w2c` of the `cameras` and
+/// `model_cameras` tables).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pinhole {
     /// Focal length x, pixels.
     pub fx: f64,
     /// Focal length y, pixels.
@@ -69,6 +65,117 @@ pub struct Camera {
     pub height: u32,
     /// World-to-camera 4x4, row-major, OpenCV axes (x right, y down, z forward).
     pub w2c: [f64; 16],
+}
+
+impl Pinhole {
+    /// A pinhole of focal length `focal` (both axes) with the principal point at the centre
+    /// of a `width`×`height` image.
+    pub fn centred(focal: f64, width: u32, height: u32, w2c: [f64; 16]) -> Pinhole {
+        let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+        Pinhole { fx: focal, fy: focal, cx, cy, width, height, w2c }
+    }
+
+    /// The image size (W, H).
+    pub fn size(&self) -> (usize, usize) {
+        (self.width as usize, self.height as usize)
+    }
+
+    /// The table columns `fx`, `fy`, `cx`, `cy`, `width`, `height`, `w2c`, in this order.
+    pub(super) fn fields() -> [Field; 7] {
+        [
+            field("fx", DataType::Float64),
+            field("fy", DataType::Float64),
+            field("cx", DataType::Float64),
+            field("cy", DataType::Float64),
+            field("width", DataType::UInt32),
+            field("height", DataType::UInt32),
+            field("w2c", fixed_list(DataType::Float64, 16)),
+        ]
+    }
+
+    /// The columns of [`Pinhole::fields`] holding `pinholes`, one row each.
+    pub(super) fn columns(pinholes: &[&Pinhole]) -> [ArrayRef; 7] {
+        let f = |g: fn(&Pinhole) -> f64| -> ArrayRef {
+            Arc::new(Float64Array::from_iter_values(pinholes.iter().map(|p| g(p))))
+        };
+        let u = |g: fn(&Pinhole) -> u32| -> ArrayRef {
+            Arc::new(UInt32Array::from_iter_values(pinholes.iter().map(|p| g(p))))
+        };
+        let item = Arc::new(Field::new("item", DataType::Float64, false));
+        let w2c: Vec<f64> = pinholes.iter().flat_map(|p| p.w2c).collect();
+        let w2c = FixedSizeListArray::new(item, 16, Arc::new(Float64Array::from(w2c)), None);
+        [
+            f(|p| p.fx),
+            f(|p| p.fy),
+            f(|p| p.cx),
+            f(|p| p.cy),
+            u(|p| p.width),
+            u(|p| p.height),
+            Arc::new(w2c),
+        ]
+    }
+
+    /// Read the columns of [`Pinhole::fields`] from `c`, checking that they are finite and,
+    /// row by row, that the focal lengths are positive and the image is not empty.
+    pub(super) fn read(path: &Path, c: &Columns) -> Result<Vec<Pinhole>> {
+        let k: Vec<&[f64]> = ["fx", "fy", "cx", "cy"]
+            .iter()
+            .map(|n| c.values::<Float64Type>(n))
+            .collect::<Result<_>>()?;
+        let width = c.values::<UInt32Type>("width")?;
+        let height = c.values::<UInt32Type>("height")?;
+        let w2c = c.fixed_f64("w2c", 16)?;
+        for (name, v) in [("fx", k[0]), ("fy", k[1]), ("cx", k[2]), ("cy", k[3])] {
+            validate::finite(path, name, 0, v)?;
+        }
+        validate::finite_items(path, "w2c", 0, w2c, 16)?;
+        let mut out = Vec::with_capacity(width.len());
+        for i in 0..width.len() {
+            let bad = |column: &str, msg: String| Error::Value {
+                path: path.to_path_buf(),
+                column: column.into(),
+                row: i as u64,
+                msg,
+            };
+            if width[i] == 0 || height[i] == 0 {
+                return Err(bad(
+                    "width",
+                    format!("image size {}x{} is empty", width[i], height[i]),
+                ));
+            }
+            if k[0][i] <= 0.0 || k[1][i] <= 0.0 {
+                return Err(bad(
+                    "fx",
+                    format!("focal lengths must be positive, got {} {}", k[0][i], k[1][i]),
+                ));
+            }
+            let mut m = [0.0; 16];
+            m.copy_from_slice(&w2c[i * 16..i * 16 + 16]);
+            out.push(Pinhole {
+                fx: k[0][i],
+                fy: k[1][i],
+                cx: k[2][i],
+                cy: k[3][i],
+                width: width[i],
+                height: height[i],
+                w2c: m,
+            });
+        }
+        Ok(out)
+    }
+}
+
+/// One image's camera: a pinhole with optional distortion, OpenCV axes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    /// Time index 0..T-1 of the training video this image was taken at.
+    pub frame: u32,
+    /// Camera name (e.g. `"0"` for the training camera).
+    pub camera: String,
+    /// Train or eval.
+    pub split: Split,
+    /// Intrinsics, image size and pose.
+    pub pinhole: Pinhole,
     /// RGB(A) PNG path relative to the scene directory.
     pub image_path: String,
     /// z-depth `.npy` path (float32, 0 = invalid), if any.
@@ -82,9 +189,25 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The camera `camera` of `frame` with the scene layout's image path
+    /// `rgb/<camera>/<frame:05>.png`, and no depth, mask, angle offset or distortion.
+    pub fn new(frame: u32, camera: &str, split: Split, pinhole: Pinhole) -> Camera {
+        Camera {
+            frame,
+            camera: camera.into(),
+            split,
+            pinhole,
+            image_path: format!("rgb/{camera}/{frame:05}.png"),
+            depth_path: None,
+            mask_path: None,
+            angle_offset_deg: None,
+            distortion: None,
+        }
+    }
+
     /// The world-to-camera matrix (glam is column-major; `w2c` is stored row-major).
     pub fn w2c_mat(&self) -> DMat4 {
-        DMat4::from_cols_array(&self.w2c).transpose()
+        DMat4::from_cols_array(&self.pinhole.w2c).transpose()
     }
 
     /// Rotation part of world-to-camera.
@@ -119,7 +242,8 @@ impl Camera {
             u = u * rad + du;
             v = v * rad + dv;
         }
-        Some((self.fx * u + self.cx, self.fy * v + self.cy, c.z))
+        let k = &self.pinhole;
+        Some((k.fx * u + k.cx, k.fy * v + k.cy, c.z))
     }
 }
 
@@ -130,31 +254,26 @@ impl Table for CamerasTable {
     const NAME: &'static str = "cameras";
     const VERSION: u32 = 1;
     fn schema() -> SchemaRef {
-        Arc::new(Schema::new(vec![
+        let mut fields = vec![
             field("frame", DataType::UInt32),
             field("camera", DataType::Utf8),
             field("split", DataType::Utf8),
-            field("fx", DataType::Float64),
-            field("fy", DataType::Float64),
-            field("cx", DataType::Float64),
-            field("cy", DataType::Float64),
-            field("width", DataType::UInt32),
-            field("height", DataType::UInt32),
-            field("w2c", fixed_list(DataType::Float64, 16)),
+        ];
+        fields.extend(Pinhole::fields());
+        fields.extend([
             field("image_path", DataType::Utf8),
             nullable("depth_path", DataType::Utf8),
             nullable("mask_path", DataType::Utf8),
             nullable("angle_offset_deg", DataType::Float32),
             nullable("distortion", fixed_list(DataType::Float64, 5)),
-        ]))
+        ]);
+        Arc::new(Schema::new(fields))
     }
 }
 
 /// Write `cameras` to `path` atomically (one row group).
 pub fn write(path: &Path, cameras: &[Camera], provenance: &Provenance) -> Result<()> {
-    let w2c: Vec<f64> = cameras.iter().flat_map(|c| c.w2c).collect();
-    let item = Arc::new(arrow::datatypes::Field::new("item", DataType::Float64, false));
-    let w2c = FixedSizeListArray::new(item.clone(), 16, Arc::new(Float64Array::from(w2c)), None);
+    let item = Arc::new(Field::new("item", DataType::Float64, false));
     let dist_valid: Vec<bool> = cameras.iter().map(|c| c.distortion.is_some()).collect();
     let dist: Vec<f64> = cameras.iter().flat_map(|c| c.distortion.unwrap_or([0.0; 5])).collect();
     let dist = FixedSizeListArray::new(
@@ -163,23 +282,20 @@ pub fn write(path: &Path, cameras: &[Camera], provenance: &Provenance) -> Result
         Arc::new(Float64Array::from(dist)),
         Some(dist_valid.into()),
     );
-    let cols: Vec<ArrayRef> = vec![
+    let pinholes: Vec<&Pinhole> = cameras.iter().map(|c| &c.pinhole).collect();
+    let mut cols: Vec<ArrayRef> = vec![
         Arc::new(UInt32Array::from_iter_values(cameras.iter().map(|c| c.frame))),
         Arc::new(StringArray::from_iter_values(cameras.iter().map(|c| c.camera.as_str()))),
         Arc::new(StringArray::from_iter_values(cameras.iter().map(|c| c.split.as_str()))),
-        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.fx))),
-        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.fy))),
-        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.cx))),
-        Arc::new(Float64Array::from_iter_values(cameras.iter().map(|c| c.cy))),
-        Arc::new(UInt32Array::from_iter_values(cameras.iter().map(|c| c.width))),
-        Arc::new(UInt32Array::from_iter_values(cameras.iter().map(|c| c.height))),
-        Arc::new(w2c),
+    ];
+    cols.extend(Pinhole::columns(&pinholes));
+    cols.extend::<[ArrayRef; 5]>([
         Arc::new(StringArray::from_iter_values(cameras.iter().map(|c| c.image_path.as_str()))),
         Arc::new(StringArray::from_iter(cameras.iter().map(|c| c.depth_path.as_deref()))),
         Arc::new(StringArray::from_iter(cameras.iter().map(|c| c.mask_path.as_deref()))),
         Arc::new(Float32Array::from_iter(cameras.iter().map(|c| c.angle_offset_deg))),
         Arc::new(dist),
-    ];
+    ]);
     write_table::<CamerasTable>(path, provenance, [batch::<CamerasTable>(cols)])
 }
 
@@ -191,22 +307,12 @@ pub fn read(path: &Path) -> Result<Vec<Camera>> {
     let frame = c.values::<UInt32Type>("frame")?;
     let camera = c.strings("camera")?;
     let split = c.strings("split")?;
-    let fx = c.values::<Float64Type>("fx")?;
-    let fy = c.values::<Float64Type>("fy")?;
-    let cx = c.values::<Float64Type>("cx")?;
-    let cy = c.values::<Float64Type>("cy")?;
-    let width = c.values::<UInt32Type>("width")?;
-    let height = c.values::<UInt32Type>("height")?;
-    let w2c = c.fixed_f64("w2c", 16)?;
     let image = c.strings("image_path")?;
     let depth = c.opt_strings("depth_path")?;
     let mask = c.opt_strings("mask_path")?;
     let angle = c.opt_values::<Float32Type>("angle_offset_deg")?;
     let dist_arr = c.get::<FixedSizeListArray>("distortion")?;
-    for (name, v) in [("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)] {
-        validate::finite(path, name, 0, v)?;
-    }
-    validate::finite_items(path, "w2c", 0, w2c, 16)?;
+    let pinholes = Pinhole::read(path, &c)?;
     let value_err = |column: &str, row: usize, msg: String| Error::Value {
         path: path.to_path_buf(),
         column: column.into(),
@@ -219,20 +325,6 @@ pub fn read(path: &Path) -> Result<Vec<Camera>> {
         let split = Split::parse(&split[i]).ok_or_else(|| {
             value_err("split", i, format!("unknown split '{}' (train or eval)", split[i]))
         })?;
-        if width[i] == 0 || height[i] == 0 {
-            return Err(value_err(
-                "width",
-                i,
-                format!("image size {}x{} is empty", width[i], height[i]),
-            ));
-        }
-        if fx[i] <= 0.0 || fy[i] <= 0.0 {
-            return Err(value_err(
-                "fx",
-                i,
-                format!("focal lengths must be positive, got {} {}", fx[i], fy[i]),
-            ));
-        }
         if let Some(first) = seen.insert((camera[i].clone(), frame[i]), i) {
             return Err(value_err(
                 "camera",
@@ -254,19 +346,11 @@ pub fn read(path: &Path) -> Result<Vec<Camera>> {
         } else {
             None
         };
-        let mut m = [0.0; 16];
-        m.copy_from_slice(&w2c[i * 16..i * 16 + 16]);
         out.push(Camera {
             frame: frame[i],
             camera: camera[i].clone(),
             split,
-            fx: fx[i],
-            fy: fy[i],
-            cx: cx[i],
-            cy: cy[i],
-            width: width[i],
-            height: height[i],
-            w2c: m,
+            pinhole: pinholes[i],
             image_path: image[i].clone(),
             depth_path: depth[i].clone(),
             mask_path: mask[i].clone(),

@@ -27,6 +27,7 @@ use parquet::file::serialized_reader::SerializedPageReader;
 
 use super::pages::CheckedPages;
 use super::{Error, Result};
+use crate::util::fs::IoError;
 
 /// Metadata key naming the table kind (e.g. `trajectories`).
 pub const KEY_TABLE: &str = "usplat4d.table";
@@ -112,7 +113,7 @@ impl TableWriter {
         schema: SchemaRef,
         provenance: &Provenance,
     ) -> Result<Self> {
-        let io = |source| Error::Io { path: path.to_path_buf(), cause: source };
+        let io = IoError::at(path);
         let dir = match path.parent() {
             Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
             _ => PathBuf::from("."),
@@ -165,11 +166,8 @@ impl TableWriter {
         self.writer
             .close()
             .map_err(|source| Error::Parquet { path: path.clone(), cause: source })?;
-        self.tmp
-            .as_file()
-            .sync_all()
-            .map_err(|source| Error::Io { path: path.clone(), cause: source })?;
-        self.tmp.persist(&path).map_err(|e| Error::Io { path: path.clone(), cause: e.error })?;
+        self.tmp.as_file().sync_all().map_err(IoError::at(&path))?;
+        self.tmp.persist(&path).map_err(|e| IoError { path: path.clone(), cause: e.error })?;
         Ok(())
     }
 }
@@ -281,8 +279,7 @@ pub struct TableReader<R: Source = File> {
 impl TableReader<File> {
     /// Open `path` as table `T`, validating the whole schema.
     pub fn open<T: Table>(path: &Path) -> Result<Self> {
-        let file = File::open(path)
-            .map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
+        let file = File::open(path).map_err(IoError::at(path))?;
         Self::new::<T>(path, file)
     }
 }
@@ -350,10 +347,7 @@ impl<R: Source> TableReader<R> {
     }
 
     fn read(&self, groups: Option<Vec<usize>>) -> Result<RecordBatch> {
-        let src = self
-            .source
-            .dup()
-            .map_err(|source| Error::Io { path: self.path.clone(), cause: source })?;
+        let src = self.source.dup().map_err(IoError::at(&self.path))?;
         let groups = groups.unwrap_or_else(|| (0..self.num_row_groups()).collect());
         let reader = read_row_groups(&self.path, src, &self.meta, groups, 1 << 20)?;
         let schema = arrow::array::RecordBatchReader::schema(&reader);

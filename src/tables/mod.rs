@@ -28,6 +28,8 @@ use std::path::PathBuf;
 
 use arrow::datatypes::SchemaRef;
 
+use crate::util::fs::IoError;
+
 pub use io::{Provenance, Table, TableReader, TableWriter};
 
 /// Errors of reading, validating or writing a table.
@@ -35,13 +37,8 @@ pub use io::{Provenance, Table, TableReader, TableWriter};
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be opened, created, written or renamed.
-    #[error("{}: {cause}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        cause: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] IoError),
     /// The Parquet layer failed (not a Parquet file, truncated, corrupt).
     #[error("{}: {cause}", path.display())]
     Parquet {

@@ -9,12 +9,13 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow::array::{ArrayRef, FixedSizeListArray, Float64Array, UInt32Array};
-use arrow::datatypes::{DataType, Float64Type, Schema, SchemaRef, UInt32Type};
+use arrow::array::{ArrayRef, UInt32Array};
+use arrow::datatypes::{DataType, Schema, SchemaRef, UInt32Type};
 
-use super::cameras::Camera;
-use super::io::{Columns, Table, TableReader, batch, field, fixed_list, write_table};
-use super::{Error, Provenance, Result, validate};
+use super::cameras::{Camera, Pinhole};
+use super::io::{Columns, Table, TableReader, batch, field, write_table};
+use super::{Error, Provenance, Result};
+use crate::util::fs::IoError;
 
 /// Marker type of the `model_cameras` table.
 pub struct ModelCamerasTable;
@@ -23,16 +24,8 @@ impl Table for ModelCamerasTable {
     const NAME: &'static str = "model_cameras";
     const VERSION: u32 = 1;
     fn schema() -> SchemaRef {
-        Arc::new(Schema::new(vec![
-            field("frame", DataType::UInt32),
-            field("fx", DataType::Float64),
-            field("fy", DataType::Float64),
-            field("cx", DataType::Float64),
-            field("cy", DataType::Float64),
-            field("width", DataType::UInt32),
-            field("height", DataType::UInt32),
-            field("w2c", fixed_list(DataType::Float64, 16)),
-        ]))
+        let frame = field("frame", DataType::UInt32);
+        Arc::new(Schema::new([[frame].as_slice(), &Pinhole::fields()].concat()))
     }
 }
 
@@ -41,39 +34,16 @@ impl Table for ModelCamerasTable {
 pub struct ModelCamera {
     /// Training frame t.
     pub frame: u32,
-    /// Focal length x, pixels of a `width`-wide image.
-    pub fx: f64,
-    /// Focal length y, pixels.
-    pub fy: f64,
-    /// Principal point x, pixels.
-    pub cx: f64,
-    /// Principal point y, pixels.
-    pub cy: f64,
-    /// Image width the intrinsics refer to.
-    pub width: u32,
-    /// Image height the intrinsics refer to.
-    pub height: u32,
-    /// World-to-camera 4x4, row-major, in the model's world frame.
-    pub w2c: [f64; 16],
+    /// Intrinsics (pixels of a `width`×`height` image) and world-to-camera, in the
+    /// model's world frame.
+    pub pinhole: Pinhole,
 }
 
 /// Write `cams` (frames 0..T-1 in order) to `path` atomically.
 pub fn write(path: &Path, cams: &[ModelCamera], provenance: &Provenance) -> Result<()> {
-    let item = Arc::new(arrow::datatypes::Field::new("item", DataType::Float64, false));
-    let w2c: Vec<f64> = cams.iter().flat_map(|c| c.w2c).collect();
-    let f = |g: fn(&ModelCamera) -> f64| -> ArrayRef {
-        Arc::new(Float64Array::from_iter_values(cams.iter().map(g)))
-    };
-    let cols: Vec<ArrayRef> = vec![
-        Arc::new(UInt32Array::from_iter_values(cams.iter().map(|c| c.frame))),
-        f(|c| c.fx),
-        f(|c| c.fy),
-        f(|c| c.cx),
-        f(|c| c.cy),
-        Arc::new(UInt32Array::from_iter_values(cams.iter().map(|c| c.width))),
-        Arc::new(UInt32Array::from_iter_values(cams.iter().map(|c| c.height))),
-        Arc::new(FixedSizeListArray::new(item, 16, Arc::new(Float64Array::from(w2c)), None)),
-    ];
+    let pinholes: Vec<&Pinhole> = cams.iter().map(|c| &c.pinhole).collect();
+    let frame: ArrayRef = Arc::new(UInt32Array::from_iter_values(cams.iter().map(|c| c.frame)));
+    let cols = [[frame].as_slice(), &Pinhole::columns(&pinholes)].concat();
     write_table::<ModelCamerasTable>(path, provenance, [batch::<ModelCamerasTable>(cols)])
 }
 
@@ -83,53 +53,18 @@ pub fn read(path: &Path) -> Result<Vec<ModelCamera>> {
     let b = reader.read_all()?;
     let c = Columns::new(path, &b);
     let frame = c.values::<UInt32Type>("frame")?;
-    let k: Vec<&[f64]> = ["fx", "fy", "cx", "cy"]
-        .iter()
-        .map(|n| c.values::<Float64Type>(n))
-        .collect::<Result<_>>()?;
-    let width = c.values::<UInt32Type>("width")?;
-    let height = c.values::<UInt32Type>("height")?;
-    let w2c = c.fixed_f64("w2c", 16)?;
-    for (name, v) in [("fx", k[0]), ("fy", k[1]), ("cx", k[2]), ("cy", k[3]), ("w2c", w2c)] {
-        validate::finite(path, name, 0, v)?;
+    let pinholes = Pinhole::read(path, &c)?;
+    for (i, &f) in frame.iter().enumerate() {
+        if f as usize != i {
+            return Err(Error::Value {
+                path: path.to_path_buf(),
+                column: "frame".into(),
+                row: i as u64,
+                msg: format!("frame {f} at row {i}: expected frames 0..T-1 in order"),
+            });
+        }
     }
-    let mut out = Vec::with_capacity(frame.len());
-    for i in 0..frame.len() {
-        let bad = |column: &str, msg: String| Error::Value {
-            path: path.to_path_buf(),
-            column: column.into(),
-            row: i as u64,
-            msg,
-        };
-        if frame[i] as usize != i {
-            return Err(bad(
-                "frame",
-                format!("frame {} at row {i}: expected frames 0..T-1 in order", frame[i]),
-            ));
-        }
-        if k[0][i] <= 0.0 || k[1][i] <= 0.0 {
-            return Err(bad(
-                "fx",
-                format!("focal lengths must be positive, got {} {}", k[0][i], k[1][i]),
-            ));
-        }
-        if width[i] == 0 || height[i] == 0 {
-            return Err(bad("width", format!("image size {}x{} is empty", width[i], height[i])));
-        }
-        let mut m = [0.0; 16];
-        m.copy_from_slice(&w2c[i * 16..i * 16 + 16]);
-        out.push(ModelCamera {
-            frame: frame[i],
-            fx: k[0][i],
-            fy: k[1][i],
-            cx: k[2][i],
-            cy: k[3][i],
-            width: width[i],
-            height: height[i],
-            w2c: m,
-        });
-    }
-    Ok(out)
+    Ok(frame.iter().zip(pinholes).map(|(&frame, pinhole)| ModelCamera { frame, pinhole }).collect())
 }
 
 /// A similarity `x_model = scale · rotation · x_scene + translation`.
@@ -168,16 +103,8 @@ impl Similarity {
     /// The model camera of scene camera `c`: its intrinsics, and its pose mapped by
     /// [`Similarity::w2c_to_model`].
     pub fn camera_to_model(&self, c: &Camera) -> ModelCamera {
-        ModelCamera {
-            frame: c.frame,
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            width: c.width,
-            height: c.height,
-            w2c: self.w2c_to_model(&c.w2c),
-        }
+        let pinhole = Pinhole { w2c: self.w2c_to_model(&c.pinhole.w2c), ..c.pinhole };
+        ModelCamera { frame: c.frame, pinhole }
     }
 
     /// The world-to-camera matrix (row-major) in the model frame of a scene camera `w2c`:
@@ -202,19 +129,13 @@ impl Similarity {
 
 /// Write `sim` as pretty JSON to `path` atomically.
 pub fn write_similarity(path: &Path, sim: &Similarity) -> Result<()> {
-    let io = |cause| Error::Io { path: path.to_path_buf(), cause };
-    let text = serde_json::to_string_pretty(sim).map_err(|e| io(e.into()))?;
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
-    std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(io)?;
-    tmp.persist(path).map_err(|e| io(e.error))?;
-    Ok(())
+    let text = serde_json::to_string_pretty(sim).map_err(|e| IoError::at(path)(e.into()))?;
+    Ok(crate::util::fs::write_atomic(path, text.as_bytes())?)
 }
 
 /// Read `path` (a [`Similarity`] as JSON), checking s > 0 and finite values.
 pub fn read_similarity(path: &Path) -> Result<Similarity> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|cause| Error::Io { path: path.to_path_buf(), cause })?;
+    let text = std::fs::read_to_string(path).map_err(IoError::at(path))?;
     let bad = |msg: String| Error::Mismatch { path: path.to_path_buf(), msg };
     let sim: Similarity = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
     let finite = sim.rotation.iter().flatten().chain(&sim.translation).all(|x| x.is_finite());
@@ -240,13 +161,15 @@ mod tests {
         let cams: Vec<ModelCamera> = (0..3)
             .map(|t| ModelCamera {
                 frame: t,
-                fx: 50.0,
-                fy: 51.0,
-                cx: 32.0,
-                cy: 24.0,
-                width: 64,
-                height: 48,
-                w2c,
+                pinhole: Pinhole {
+                    fx: 50.0,
+                    fy: 51.0,
+                    cx: 32.0,
+                    cy: 24.0,
+                    width: 64,
+                    height: 48,
+                    w2c,
+                },
             })
             .collect();
         write(&p, &cams, &Provenance::default()).unwrap();

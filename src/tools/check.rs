@@ -71,7 +71,7 @@ pub fn check(path: &std::path::Path, ctx: &Context) -> anyhow::Result<CheckRepor
 
 /// Decode the image, depth map and mask of camera `row` and check their sizes.
 fn check_files(scene: &Scene, row: usize, cam: &Camera) -> anyhow::Result<()> {
-    let (w, h) = (cam.width as usize, cam.height as usize);
+    let (w, h) = cam.pinhole.size();
     for (column, rel) in [
         ("image_path", Some(&cam.image_path)),
         ("depth_path", cam.depth_path.as_ref()),
@@ -132,7 +132,7 @@ mod tests {
         let (scene_dir, _) = crate::datasets::demo::write_demo_scene(dir, 2).unwrap();
         let mut scene = Scene::load(&scene_dir).unwrap();
         for c in &mut scene.cameras {
-            let (w, h) = (c.width as usize, c.height as usize);
+            let (w, h) = c.pinhole.size();
             c.depth_path = Some(format!("depth/{}/{:05}.npy", c.camera, c.frame));
             c.mask_path = Some(format!("mask/{}/{:05}.png", c.camera, c.frame));
             write_png(&scene.dir.join(&c.image_path), &Image::filled(w, h, 4, 0.5)).unwrap();

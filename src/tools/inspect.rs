@@ -107,8 +107,7 @@ pub struct Summary {
 
 /// Describe the Parquet file at `path`, reading it batch by batch.
 pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> {
-    let file =
-        File::open(path).map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
+    let file = File::open(path).map_err(crate::util::fs::IoError::at(path))?;
     let arrow_meta = crate::tables::io::load_metadata(path, &file)?;
     let meta = arrow_meta.metadata().clone();
     let schema = arrow_meta.schema().clone();

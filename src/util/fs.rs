@@ -3,59 +3,63 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// A failed atomic write: the path that failed (the file, or its directory when the
-/// directory or the temporary file could not be created) and the cause.
+/// An I/O error naming its path: the file (or its directory, when the directory or a
+/// temporary file could not be created) and the cause, displayed as `path: cause`. The cause
+/// is in the message, not chained, so `{:#}` prints it once. The typed error enums of the
+/// layers wrap it as their `Io` variant.
 #[derive(Debug, thiserror::Error)]
-#[error("{}: {source}", path.display())]
-pub struct WriteError {
+#[error("{}: {cause}", path.display())]
+pub struct IoError {
     /// The file or directory.
     pub path: PathBuf,
     /// The underlying error.
-    pub source: std::io::Error,
+    pub cause: std::io::Error,
+}
+
+impl IoError {
+    /// The error of `path`, for `map_err`: `File::open(p).map_err(IoError::at(p))?`.
+    pub fn at<P: AsRef<Path> + ?Sized>(path: &P) -> impl Fn(std::io::Error) -> IoError + Copy {
+        move |cause| IoError { path: path.as_ref().to_path_buf(), cause }
+    }
 }
 
 /// Write `bytes` to `path` through a temporary file in the same directory and a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), WriteError> {
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let at = |p: &Path, source| WriteError { path: p.to_path_buf(), source };
-    std::fs::create_dir_all(&dir).map_err(|e| at(&dir, e))?;
+    std::fs::create_dir_all(&dir).map_err(IoError::at(&dir))?;
     let mut tmp =
-        tempfile::Builder::new().prefix(".tmp-").tempfile_in(&dir).map_err(|e| at(&dir, e))?;
-    tmp.write_all(bytes).map_err(|e| at(path, e))?;
-    tmp.persist(path).map_err(|e| WriteError { path: path.into(), source: e.error })?;
+        tempfile::Builder::new().prefix(".tmp-").tempfile_in(&dir).map_err(IoError::at(&dir))?;
+    tmp.write_all(bytes).map_err(IoError::at(path))?;
+    tmp.persist(path).map_err(|e| IoError { path: path.into(), cause: e.error })?;
     Ok(())
 }
 
 /// A staging directory beside `out`, named `<prefix>…` (same file system, so its files can
 /// be renamed in); removed when dropped unless [`publish`]ed.
-pub fn staging_dir(out: &Path, prefix: &str) -> Result<tempfile::TempDir, WriteError> {
-    let abs = std::path::absolute(out).map_err(|e| WriteError { path: out.into(), source: e })?;
+pub fn staging_dir(out: &Path, prefix: &str) -> Result<tempfile::TempDir, IoError> {
+    let abs = std::path::absolute(out).map_err(IoError::at(out))?;
     let parent = abs.parent().unwrap_or(&abs);
-    let at = |source| WriteError { path: parent.to_path_buf(), source };
-    std::fs::create_dir_all(parent).map_err(at)?;
-    tempfile::Builder::new().prefix(prefix).tempdir_in(parent).map_err(at)
+    std::fs::create_dir_all(parent).map_err(IoError::at(parent))?;
+    tempfile::Builder::new().prefix(prefix).tempdir_in(parent).map_err(IoError::at(parent))
 }
 
 /// Move the staged files into `out`: the whole directory when `out` does not exist yet,
 /// otherwise file by file, replacing files of the same name and keeping the others.
-pub fn publish(staged: &Path, out: &Path) -> Result<(), WriteError> {
-    fn at(p: &Path) -> impl Fn(std::io::Error) -> WriteError + '_ {
-        move |source| WriteError { path: p.to_path_buf(), source }
-    }
+pub fn publish(staged: &Path, out: &Path) -> Result<(), IoError> {
     if !out.exists() {
-        return std::fs::rename(staged, out).map_err(at(out));
+        return std::fs::rename(staged, out).map_err(IoError::at(out));
     }
-    for e in std::fs::read_dir(staged).map_err(at(staged))? {
-        let e = e.map_err(at(staged))?;
+    for e in std::fs::read_dir(staged).map_err(IoError::at(staged))? {
+        let e = e.map_err(IoError::at(staged))?;
         let to = out.join(e.file_name());
-        if e.file_type().map_err(at(&e.path()))?.is_dir() {
-            std::fs::create_dir_all(&to).map_err(at(&to))?;
+        if e.file_type().map_err(IoError::at(&e.path()))?.is_dir() {
+            std::fs::create_dir_all(&to).map_err(IoError::at(&to))?;
             publish(&e.path(), &to)?;
         } else {
-            std::fs::rename(e.path(), &to).map_err(at(&to))?;
+            std::fs::rename(e.path(), &to).map_err(IoError::at(&to))?;
         }
     }
     Ok(())

@@ -16,7 +16,7 @@ use serde_json::json;
 
 use super::json::Obj;
 use super::{Error, Result};
-use crate::scene::{Camera, Split};
+use crate::scene::{Camera, Pinhole, Split};
 
 /// Largest tolerated `max |O·Oᵀ − I|` of an orientation (the iPhone files reach 1e-7).
 const ROTATION_TOLERANCE: f64 = 1e-4;
@@ -163,13 +163,15 @@ impl DycheckCamera {
             frame,
             camera: camera.to_string(),
             split,
-            fx: self.focal_length * s,
-            fy: self.focal_length * s * self.pixel_aspect_ratio,
-            cx: self.principal_point[0] * s,
-            cy: self.principal_point[1] * s,
-            width: round_half_even(self.image_size[0] as f64 * s),
-            height: round_half_even(self.image_size[1] as f64 * s),
-            w2c: Camera::w2c_from_mat(w2c),
+            pinhole: Pinhole {
+                fx: self.focal_length * s,
+                fy: self.focal_length * s * self.pixel_aspect_ratio,
+                cx: self.principal_point[0] * s,
+                cy: self.principal_point[1] * s,
+                width: round_half_even(self.image_size[0] as f64 * s),
+                height: round_half_even(self.image_size[1] as f64 * s),
+                w2c: Camera::w2c_from_mat(w2c),
+            },
             image_path: String::new(),
             depth_path: None,
             mask_path: None,
@@ -188,10 +190,10 @@ impl DycheckCamera {
         // The true inverse (not Oᵀ): stored rotations are orthonormal only to ~1e-7, and
         // −O·(−O⁻¹·t) must give back t.
         let position = -(r.inverse() * t);
-        if !(cam.fx > 0.0 && cam.fy > 0.0) {
+        if !(cam.pinhole.fx > 0.0 && cam.pinhole.fy > 0.0) {
             return Err(Error::Scene(format!(
                 "camera {} frame {}: focal lengths must be positive, got {} {}",
-                cam.camera, cam.frame, cam.fx, cam.fy
+                cam.camera, cam.frame, cam.pinhole.fx, cam.pinhole.fy
             )));
         }
         let rt = r.transpose();
@@ -199,12 +201,12 @@ impl DycheckCamera {
         Ok(DycheckCamera {
             orientation: [rt.x_axis.to_array(), rt.y_axis.to_array(), rt.z_axis.to_array()],
             position: position.to_array(),
-            focal_length: cam.fx * f,
-            principal_point: [cam.cx * f, cam.cy * f],
-            pixel_aspect_ratio: cam.fy / cam.fx,
+            focal_length: cam.pinhole.fx * f,
+            principal_point: [cam.pinhole.cx * f, cam.pinhole.cy * f],
+            pixel_aspect_ratio: cam.pinhole.fy / cam.pinhole.fx,
             radial_distortion: [d[0], d[1], d[2]],
             tangential_distortion: [d[3], d[4]],
-            image_size: [cam.width * factor, cam.height * factor],
+            image_size: [cam.pinhole.width * factor, cam.pinhole.height * factor],
         })
     }
 }
@@ -274,7 +276,7 @@ mod tests {
         dc.image_size = [45, 61];
         let cam = dc.to_camera(2, None, 3, "1", Split::Eval);
         // 22.5 -> 22 and 30.5 -> 30 (Python's round), not 23 / 31.
-        assert_eq!((cam.width, cam.height), (22, 30));
+        assert_eq!((cam.pinhole.width, cam.pinhole.height), (22, 30));
         assert!((cam.center() - DVec3::from_array(dc.position)).length() < 1e-12);
         let back =
             DycheckCamera::from_camera(&dc.to_camera(1, None, 0, "0", Split::Train), 1).unwrap();

@@ -37,6 +37,7 @@ use crate::context::Context;
 use crate::formats::{self, png::Image};
 use crate::scene::{Camera, Scene, Split};
 use crate::tables::Provenance;
+use crate::util::fs::IoError;
 
 /// Parameters of `usplat4d import dycheck`.
 #[derive(Debug, Clone, clap::Args, serde::Serialize)]
@@ -170,7 +171,7 @@ fn copy_images(
         .par_iter()
         .zip(seq.entries.par_iter())
         .map(|(cam, e)| {
-            let (w, h) = (cam.width as usize, cam.height as usize);
+            let (w, h) = cam.pinhole.size();
             let src = existing(rgb_dir.join(format!("{}.png", e.name)), &e.name, e.split)?;
             let img = formats::png::read_png(&src)?;
             check_size(&src, img.width, img.height, cam, p.factor)?;
@@ -216,14 +217,14 @@ fn copy_images(
 
 /// An image size mismatch names the image and the camera size.
 fn check_size(path: &Path, w: usize, h: usize, cam: &Camera, factor: u32) -> Result<()> {
-    if (w, h) == (cam.width as usize, cam.height as usize) {
+    if (w, h) == cam.pinhole.size() {
         return Ok(());
     }
     Err(Error::File {
         path: path.into(),
         msg: format!(
             "image is {w}x{h} but its camera at factor {factor} is {}x{} (W x H)",
-            cam.width, cam.height
+            cam.pinhole.width, cam.pinhole.height
         ),
     })
 }
@@ -282,10 +283,9 @@ fn copy_keypoints(seq: &Sequence, out: &Path) -> Result<Option<serde_json::Value
     }
     let skeleton = dir.join(keypoints::SKELETON);
     for f in files.iter().chain(skeleton.is_file().then_some(&skeleton)) {
-        let bytes = std::fs::read(f).map_err(|error| Error::Io { path: f.clone(), error })?;
+        let bytes = std::fs::read(f).map_err(IoError::at(f))?;
         let name = f.file_name().unwrap_or_default();
-        crate::util::fs::write_atomic(&out.join(KEYPOINT_DIR).join(name), &bytes)
-            .map_err(crate::formats::Error::from)?;
+        crate::util::fs::write_atomic(&out.join(KEYPOINT_DIR).join(name), &bytes)?;
     }
     Ok(Some(json!({"dir": KEYPOINT_DIR, "frames": frames})))
 }

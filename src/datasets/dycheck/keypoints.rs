@@ -27,6 +27,7 @@ use serde_json::{Value, json};
 use super::json::Obj;
 use super::{Error, Result};
 use crate::tables::tracks_2d::Tracks2dReader;
+use crate::util::fs::IoError;
 
 /// Keypoint directory of the training split, relative to a sequence or scene directory.
 pub const KEYPOINT_DIR: &str = "keypoint/2x/train";
@@ -64,7 +65,7 @@ pub fn to_keypoint_index(u: f64, v: f64, factor: u32) -> [f64; 2] {
 
 /// The keypoint files of `dir` (`*.json` except [`SKELETON`]), sorted by name.
 pub(super) fn list_files(dir: &Path) -> Result<Vec<PathBuf>> {
-    let io = |error| Error::Io { path: dir.to_path_buf(), error };
+    let io = IoError::at(dir);
     let mut files = Vec::new();
     for e in std::fs::read_dir(dir).map_err(io)? {
         let p = e.map_err(io)?.path();

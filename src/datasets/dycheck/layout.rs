@@ -213,7 +213,7 @@ pub fn over_white(mut img: Image) -> Image {
 
 fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
     let cam = j.cam;
-    let (w, h) = (cam.width as usize, cam.height as usize);
+    let (w, h) = cam.pinhole.size();
     let f = FACTOR as usize;
     super::write_json(
         &out.join("camera").join(format!("{}.json", j.name)),
@@ -274,7 +274,7 @@ fn write_image(scene: &Scene, out: &Path, j: &Job) -> Result<Option<Extent>> {
 /// of pixel centres at +0.5).
 fn depth_extent(cam: &Camera, depth: &[f32]) -> Extent {
     let c2w = cam.w2c_mat().inverse();
-    let w = cam.width as usize;
+    let w = cam.pinhole.width as usize;
     let mut e = Extent::EMPTY;
     for (i, &z) in depth.iter().enumerate() {
         if !(z > 0.0 && z.is_finite()) {
@@ -282,7 +282,11 @@ fn depth_extent(cam: &Camera, depth: &[f32]) -> Extent {
         }
         let z = z as f64;
         let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
-        let pc = DVec3::new((x - cam.cx) / cam.fx * z, (y - cam.cy) / cam.fy * z, z);
+        let pc = DVec3::new(
+            (x - cam.pinhole.cx) / cam.pinhole.fx * z,
+            (y - cam.pinhole.cy) / cam.pinhole.fy * z,
+            z,
+        );
         let p = c2w.transform_point3(pc);
         e = e.merge(Extent { lo: p, hi: p, near: z, far: z });
     }
@@ -372,24 +376,14 @@ fn scene_fps(scene: &Scene) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::Pinhole;
 
     fn cam(camera: &str, frame: u32, split: Split) -> Camera {
+        let pinhole = Pinhole::centred(50.0, 16, 12, Camera::w2c_from_mat(glam::DMat4::IDENTITY));
         Camera {
-            frame,
-            camera: camera.into(),
-            split,
-            fx: 50.0,
-            fy: 50.0,
-            cx: 8.0,
-            cy: 6.0,
-            width: 16,
-            height: 12,
-            w2c: Camera::w2c_from_mat(glam::DMat4::IDENTITY),
-            image_path: format!("rgb/{camera}/{frame:05}.png"),
             depth_path: (split == Split::Train).then(|| format!("depth/{camera}/{frame:05}.npy")),
             mask_path: (split == Split::Eval).then(|| format!("mask/{camera}/{frame:05}.png")),
-            angle_offset_deg: None,
-            distortion: None,
+            ..Camera::new(frame, camera, split, pinhole)
         }
     }
 

@@ -36,6 +36,8 @@ mod sequence;
 
 use std::path::PathBuf;
 
+use crate::util::fs::IoError;
+
 pub use camera_json::DycheckCamera;
 pub use import::{ImportDycheckParams, run_import};
 pub use keypoints::{
@@ -78,13 +80,8 @@ pub enum Error {
         needed_by: Option<String>,
     },
     /// A file could not be read or written.
-    #[error("{}: {error}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error (in the message, not chained, so `{:#}` prints it once).
-        error: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] IoError),
     /// A file is not valid JSON.
     #[error("{}: malformed JSON: {error}", path.display())]
     Json {
@@ -139,7 +136,7 @@ fn read_json(path: &std::path::Path, needed_by: Option<&str>) -> Result<serde_js
         if error.kind() == std::io::ErrorKind::NotFound {
             Error::Missing { path: path.into(), needed_by: needed_by.map(String::from) }
         } else {
-            Error::Io { path: path.into(), error }
+            IoError::at(path)(error).into()
         }
     })?;
     serde_json::from_slice(&bytes).map_err(|error| Error::Json { path: path.into(), error })
@@ -150,7 +147,7 @@ fn write_json(path: &std::path::Path, value: &serde_json::Value) -> Result<()> {
     let mut bytes = serde_json::to_vec_pretty(value)
         .map_err(|e| Error::File { path: path.into(), msg: e.to_string() })?;
     bytes.push(b'\n');
-    Ok(crate::util::fs::write_atomic(path, &bytes).map_err(crate::formats::Error::from)?)
+    Ok(crate::util::fs::write_atomic(path, &bytes)?)
 }
 
 /// Nearest-neighbour resize of a row-major `[H, W, C]` array to `[h, w, C]`: output pixel

@@ -213,7 +213,7 @@ impl Sequence {
             .map(|e| {
                 let cam_name = e.camera_id.to_string();
                 let mut c = e.camera.to_camera(factor, transform, e.frame, &cam_name, e.split);
-                if c.width == 0 || c.height == 0 {
+                if c.pinhole.width == 0 || c.pinhole.height == 0 {
                     return Err(Error::Key {
                         path: self.dir.join("camera").join(format!("{}.json", e.name)),
                         key: "image_size".into(),

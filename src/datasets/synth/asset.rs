@@ -16,6 +16,7 @@ use gltf::mesh::Mode;
 use super::Error;
 use super::anim::{Animation, Channel, Interp, Node, Property};
 use super::shade::{Material, Texture, Wrap, srgb_to_linear};
+use crate::util::fs::IoError;
 
 /// A skin: joint nodes and their inverse bind matrices, `[J]` each.
 #[derive(Debug, Clone)]
@@ -112,8 +113,7 @@ impl Asset {
 /// Load `path` (`.gltf` with embedded or external buffers, or `.glb`).
 pub fn load(path: &Path) -> Result<Asset, Error> {
     let malformed = |msg: String| Error::Malformed { path: path.to_path_buf(), msg };
-    let bytes = std::fs::read(path)
-        .map_err(|source| Error::Io { path: path.to_path_buf(), cause: source })?;
+    let bytes = std::fs::read(path).map_err(IoError::at(path))?;
     if bytes.len() >= 12 && &bytes[..4] == b"glTF" {
         let declared = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize;
         if declared > bytes.len() {

@@ -19,7 +19,7 @@
 
 use glam::{DMat3, DMat4, DVec3};
 
-use crate::scene::{Camera, Split};
+use crate::scene::{Camera, Pinhole, Split};
 
 /// Distance of the orbit cameras from the object centre, world units (2× the bbox diagonal).
 pub const ORBIT_DISTANCE: f64 = 4.0;
@@ -75,13 +75,15 @@ pub fn orbit(
                 frame: t,
                 camera: name,
                 split: if k == 0 { Split::Train } else { Split::Eval },
-                fx: f,
-                fy: f,
-                cx: width as f64 / 2.0,
-                cy: height as f64 / 2.0,
-                width,
-                height,
-                w2c: Camera::w2c_from_mat(look_at(eye, DVec3::ZERO, DVec3::Y)),
+                pinhole: Pinhole {
+                    fx: f,
+                    fy: f,
+                    cx: width as f64 / 2.0,
+                    cy: height as f64 / 2.0,
+                    width,
+                    height,
+                    w2c: Camera::w2c_from_mat(look_at(eye, DVec3::ZERO, DVec3::Y)),
+                },
                 image_path,
                 depth_path: Some(depth_path),
                 mask_path: Some(mask_path),
@@ -148,7 +150,10 @@ pub fn place_on_path(cams: &[Camera]) -> Placement {
         / train.len().max(1) as f64;
     let half = train
         .first()
-        .map(|c| (0.5 * c.width as f64 / c.fx).min(0.5 * c.height as f64 / c.fy))
+        .map(|c| {
+            (0.5 * c.pinhole.width as f64 / c.pinhole.fx)
+                .min(0.5 * c.pinhole.height as f64 / c.pinhole.fy)
+        })
         .unwrap_or(0.5);
     Placement {
         origin,
@@ -199,7 +204,7 @@ mod tests {
         for c in &mut cams {
             c.split = Split::Train;
             let m = c.w2c_mat() * DMat4::from_translation(-target);
-            c.w2c = Camera::w2c_from_mat(m);
+            c.pinhole.w2c = Camera::w2c_from_mat(m);
         }
         let p = place_on_path(&cams);
         assert!(p.origin.abs_diff_eq(target, 1e-9), "{:?}", p.origin);

@@ -41,6 +41,7 @@ use crate::scene::{Camera, Scene, Split};
 use crate::tables::tracks_2d::{Tracks2dFrame, Tracks2dWriter};
 use crate::tables::tracks_3d::Tracks3dWriter;
 use crate::tables::{self, Provenance};
+use crate::util::fs::IoError;
 use crate::util::rng::{Rng, mix};
 
 /// Output layouts of `synth`.
@@ -277,13 +278,8 @@ mod defaults {
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The model file cannot be read.
-    #[error("{}: {cause}", path.display())]
-    Io {
-        /// The glTF file.
-        path: PathBuf,
-        /// The underlying error.
-        cause: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] IoError),
     /// The glTF is truncated, malformed or unsupported.
     #[error("{}: not a usable glTF file: {msg}", path.display())]
     Malformed {
@@ -599,8 +595,7 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
 
     // Pass 2: oracle model and tracks_3d.
     let prov = Provenance::new("synth", p);
-    std::fs::create_dir_all(&p.out)
-        .map_err(|source| formats::Error::Io { path: p.out.clone(), cause: source })?;
+    std::fs::create_dir_all(&p.out).map_err(IoError::at(&p.out)).map_err(formats::Error::from)?;
     let mut t3 = Tracks3dWriter::create(&p.out.join("tracks_3d.parquet"), track_pts.len(), &prov)?;
     let bar = ctx.progress(num_train as u64, "oracle");
     let frames = (0..num_train).map(|t| -> tables::Result<FrameState> {
@@ -736,10 +731,8 @@ pub fn generate(p: &SynthParams, ctx: &Context) -> Result<Summary, Error> {
     }
     t2.finish()?;
     bar.finish_and_clear();
-    let (w0, h0) = cams
-        .iter()
-        .find(|c| c.split == Split::Train)
-        .map_or((1, 1), |c| (c.width as usize, c.height as usize));
+    let (w0, h0) =
+        cams.iter().find(|c| c.split == Split::Train).map_or((1, 1), |c| c.pinhole.size());
     let measured = realistic
         .then(|| -> Result<priors::Measured, Error> {
             let (prior, drifting) = priors::track_priors(&exact_tracks, w0, h0, p.seed, &levels);

@@ -45,12 +45,12 @@ impl View {
     /// The view of a scene camera (distortion is ignored).
     pub fn of(c: &Camera) -> View {
         View {
-            fx: c.fx as f32,
-            fy: c.fy as f32,
-            cx: c.cx as f32,
-            cy: c.cy as f32,
-            width: c.width as usize,
-            height: c.height as usize,
+            fx: c.pinhole.fx as f32,
+            fy: c.pinhole.fy as f32,
+            cx: c.pinhole.cx as f32,
+            cy: c.pinhole.cy as f32,
+            width: c.pinhole.width as usize,
+            height: c.pinhole.height as usize,
             w2c: c.w2c_mat().as_mat4(),
         }
     }

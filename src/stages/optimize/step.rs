@@ -87,7 +87,7 @@ impl TrainingViews {
     /// Ground truth of frame `t` (colour over `background`, mask, depth); errors name the file.
     pub fn truth(&self, t: usize, background: [f32; 3]) -> anyhow::Result<FrameTruth> {
         let cam = &self.cameras[t];
-        let (w, h) = (cam.width as usize, cam.height as usize);
+        let (w, h) = cam.pinhole.size();
         let rgb = load_rgb(&self.scene, cam, background)?;
         let mask = match &cam.mask_path {
             Some(m) => {
@@ -136,15 +136,15 @@ impl TrainingViews {
 fn load_rgb(scene: &Scene, cam: &Camera, background: [f32; 3]) -> anyhow::Result<Vec<f32>> {
     let path = &scene.resolve(&cam.image_path);
     let img = scene.ground_truth_rgb(cam, background)?;
-    if img.width != cam.width as usize || img.height != cam.height as usize {
+    if img.width != cam.pinhole.width as usize || img.height != cam.pinhole.height as usize {
         anyhow::bail!(
             "{}: image is {}x{}, the camera of frame {} says {}x{}",
             path.display(),
             img.width,
             img.height,
             cam.frame,
-            cam.width,
-            cam.height
+            cam.pinhole.width,
+            cam.pinhole.height
         );
     }
     Ok(img.data)

@@ -297,7 +297,7 @@ impl LoadedTruth {
         background: [f32; 3],
         s: &UncertaintySettings,
     ) -> anyhow::Result<Self> {
-        let (w, h) = (cam.width as usize, cam.height as usize);
+        let (w, h) = cam.pinhole.size();
         let gate = s.depth_edge_percentile.is_some();
         let truth = scene.ground_truth(cam, background, true, gate)?;
         if truth.rgb.width != w || truth.rgb.height != h {

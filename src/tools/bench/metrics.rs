@@ -12,7 +12,7 @@ use crate::context::Context;
 use crate::formats::png::{Image, write_png};
 use crate::metrics::lpips::{Lpips, WeightsError};
 use crate::metrics::{psnr::psnr, ssim::ssim};
-use crate::scene::{Camera, Scene, Split};
+use crate::scene::{Camera, Pinhole, Scene, Split};
 use crate::stages::evaluate::{MaskMode, evaluate_images};
 use crate::tables::Provenance;
 
@@ -157,22 +157,11 @@ pub fn run(p: &BenchMetricsParams, ctx: &Context) -> anyhow::Result<()> {
 /// A scene of `count` eval images (11 cameras with angle offsets, round-robin) of side
 /// `size` in `dir/scene`, plus one training image.
 fn bench_scene(dir: &std::path::Path, size: usize, count: usize) -> anyhow::Result<Scene> {
+    let w2c = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0];
+    let pinhole = Pinhole::centred(size as f64, size as u32, size as u32, w2c);
     let cam = |name: String, frame: u32, split: Split, angle: Option<f32>| Camera {
-        frame,
-        camera: name.clone(),
-        split,
-        fx: size as f64,
-        fy: size as f64,
-        cx: size as f64 / 2.0,
-        cy: size as f64 / 2.0,
-        width: size as u32,
-        height: size as u32,
-        w2c: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0],
-        image_path: format!("rgb/{name}/{frame:05}.png"),
-        depth_path: None,
-        mask_path: None,
         angle_offset_deg: angle,
-        distortion: None,
+        ..Camera::new(frame, &name, split, pinhole)
     };
     let mut cameras = vec![cam("cam00".into(), 0, Split::Train, None)];
     for i in 0..count {

@@ -203,7 +203,7 @@ pub fn run(p: &BenchUncertaintyParams, ctx: &Context) -> anyhow::Result<()> {
             bar.inc(1);
         }
         bar.finish_and_clear();
-        let (w, h) = cams.first().map_or((0, 0), |c| (c.width, c.height));
+        let (w, h) = cams.first().map_or((0, 0), |c| (c.pinhole.width, c.pinhole.height));
         row.print(&format!("{} {w}x{h}", model_dir.display()), g.len());
     }
     Ok(())
