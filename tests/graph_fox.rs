@@ -36,7 +36,7 @@ use usplat4d::tables::key_nodes::{self, KeyNodes, Role};
 use usplat4d::tables::uncertainty::{UncertaintyFrame, UncertaintyReader};
 use usplat4d::util::rng::Rng;
 
-use crate::util::{Dir, Drift, bbox_diagonal, drifted_prior, repo};
+use crate::util::{Dir, Drift, DriftDirection, bbox_diagonal, drifted_prior, repo};
 
 /// Drift offset as a fraction of the bounding-box diagonal.
 const DRIFT: f32 = 0.15;
@@ -212,7 +212,13 @@ fn flip_rate(
 /// The drifted prior of the oracle in `dir/drifted`: a seeded half of the dynamic Gaussians
 /// displaced in a window around the frames the oracle run `u0` does not see them in.
 fn drifted_model(dir: &Dir, oracle: &Model, u0: &[UncertaintyFrame]) -> Drift {
-    drifted_prior(dir, oracle, |i, t| u0[t].n_pixels[i] == 0, DRIFT, MARGIN)
+    drifted_prior(
+        dir,
+        oracle,
+        |i, t| u0[t].n_pixels[i] == 0,
+        (DRIFT, DriftDirection::Random),
+        MARGIN,
+    )
 }
 
 /// (Gaussian row, frame) pairs.

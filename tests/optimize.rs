@@ -13,7 +13,7 @@ use usplat4d::model::Model;
 use usplat4d::tables::Provenance;
 use usplat4d::tables::training_log::{self, LogRow};
 
-use crate::util::{Dir, drifted_prior, repo};
+use crate::util::{Dir, DriftDirection, drifted_prior, repo};
 
 /// The scene in `dir/S` (oracle model in `dir/S/oracle`).
 fn tiny_fox(dir: &Dir) {
@@ -255,85 +255,122 @@ fn far_view_psnr(dir: &Dir, model: &str) -> f64 {
     far.and_then(|g| g["psnr"].as_f64()).expect("far views in the evaluation")
 }
 
+/// The runs of the recovery test on one drifted prior `drifted` in `dir` (scene `S`): each
+/// run's name, its errors at the drifted pairs and its far-view PSNR. Runs: the prior,
+/// vanilla, usplat4d paper, usplat4d paper with the release's anchor metric, usplat4d
+/// release (with its graph initialisation) and usplat4d release without it.
+fn recovery_runs(
+    dir: &Dir,
+    truth: &[Vec<[f32; 3]>],
+    ids: &[u32],
+    pairs: &[(usize, usize)],
+) -> Vec<(String, Vec<Option<f64>>, f64)> {
+    let common = ["--model", "drifted", "--scene", "S", "--steps", "30", "--lr-position", "0.01"];
+    dir.ok(&[&["optimize", "--recipe", "vanilla", "--out", "V"][..], &common[..]].concat());
+    let mut names = vec!["drifted".to_string(), "V".to_string()];
+    for (profile, out, extra) in [
+        ("paper", "G_paper", &[][..]),
+        ("paper", "G_paper_release_metric", &["--anchor-metric", "release"][..]),
+        ("release", "G_release", &[][..]),
+        ("release", "G_release_noinit", &["--graph-init-iters", "0"][..]),
+    ] {
+        if !dir.join(&format!("E_{profile}")).exists() {
+            graph_stages(dir, "drifted", profile);
+        }
+        let mut a: Vec<String> =
+            ["optimize", "--out", out].iter().chain(&common).map(|s| s.to_string()).collect();
+        a.extend(usplat4d_args(profile));
+        a.extend(extra.iter().map(|s| s.to_string()));
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        dir.ok(&a);
+        names.push(out.to_string());
+    }
+    names
+        .iter()
+        .map(|m| (m.clone(), drift_errors(&dir.join(m), truth, ids, pairs), far_view_psnr(dir, m)))
+        .collect()
+}
+
 /// The recovery test of issue 11: a prior whose trajectories drift in the frames where points
 /// are not seen by the training camera (as `graph_fox` builds it). After the same number of
 /// steps, the usplat4d recipe (paper profile, the default) should leave the drifted pairs
 /// closer to the ground truth than the vanilla recipe and render the far views
-/// ((120°, 180°]) better.
+/// ((120°, 180°]) better. Two priors: each drifted Gaussian displaced in one random
+/// direction (the assertions), and along the training camera's viewing ray (an occluded
+/// point stays occluded; printed only).
 ///
-/// Ignored because it does not hold on this prior. Measured with the vanilla recipe's motion
-/// terms as means (debug build, 30 steps; prior 0.195): vanilla 0.099, usplat4d paper 0.119;
-/// far PSNR prior 23.50 dB, vanilla 21.96 dB, paper 23.47 dB, release 22.93 dB: the far
-/// views hold, the drifted points do not come closer. Measured earlier with the vanilla
-/// terms summed (they then outweighed L_rgb): vanilla 0.088, usplat4d paper 0.096 (with
-/// `--graph-reduction mean` 0.089, `--anchor-metric release` 0.118, ablation (c) 0.193), far
-/// PSNR vanilla 23.67 dB, paper 23.48 dB; at 120 steps vanilla 0.092, paper 0.104, release
-/// 0.285 on its 24 non-culled pairs. The cause is the DQB target, not the loss scaling: the
-/// recipe pulls a drifted non-key towards p^DQB, and on this 1,500-Gaussian, 12-frame fox
-/// p^DQB itself is 0.134 from the truth at the drifted pairs with the paper graph (0.074
-/// even with the oracle's key trajectories and source poses: the non-keys' key neighbours
-/// do not move with them), 0.325 with the release graph (0.275 with the oracle), while
-/// vanilla's temporal smoothing alone reaches 0.088; for 56 of the 142 pairs t̂ is itself a
-/// drifted frame (drifted points that became visible pass the colour gate there), so the
-/// source pose is wrong too. Run with `--ignored` to measure.
+/// Ignored because the first assertion does not hold. Measured (debug build, `cargo test
+/// --test tests usplat4d_brings -- --ignored --nocapture`; error at the drifted pairs from
+/// 0.195, far-view PSNR in dB; release runs on the pairs they keep, vanilla there in brackets):
+///
+/// | run | random: error | PSNR | along rays: error | PSNR |
+/// |---|---|---|---|---|
+/// | prior | 0.195 | 23.50 | 0.195 | 23.37 |
+/// | vanilla | 0.099 | 21.96 | 0.074 | 21.95 |
+/// | usplat4d paper | 0.119 | 23.47 | 0.073 | 23.78 |
+/// | paper, `--anchor-metric release` | 0.150 | 22.27 | 0.102 | 22.56 |
+/// | usplat4d release | 0.200 (0.109) | 19.57 | 0.246 (0.107) | 19.54 |
+/// | release, `--graph-init-iters 0` | 0.121 (0.109) | 22.93 | 0.082 (0.107) | 22.95 |
+///
+/// usplat4d renders the far views better on both priors but brings the randomly drifted
+/// points less close than vanilla (along the rays it is level: 0.073 against 0.074, and at
+/// 24 frames and 6,000 Gaussians behind). The cause is the motion model, not the loss: the
+/// points the training camera never sees (the far legs of the walking fox) get no key nodes,
+/// so DQB moves them with the keys of the parts that are seen. Propagating the oracle's own
+/// keys to every non-key (the release's graph initialisation run on the oracle at 24 frames,
+/// 128², 6,000 Gaussians) leaves them 0.11 from the truth at the unseen pairs (0.04 over all
+/// dynamic pairs). In the paper-literal metric the DQB pull is also weighted by 1/u of the
+/// non-key at that frame, so it vanishes at exactly the unseen frames.
 #[test]
-#[ignore = "issue 11's recovery criterion does not hold on this prior (EPE vanilla 0.099 vs \
-            usplat4d paper 0.119; the DQB targets are 0.134 off); see the doc comment"]
+#[ignore = "issue 11's recovery criterion does not hold on this prior: the unseen parts have \
+            no key nodes (see the doc comment)"]
 fn usplat4d_brings_drifted_points_closer_than_vanilla() {
-    let dir = Dir::new();
-    let gltf = repo().join("pipelines/data/Fox.glb");
-    let args = ["synth", "--gltf", gltf.to_str().unwrap(), "--animation", "Walk", "--out", "S"];
-    let size = ["--frames", "12", "--width", "96", "--height", "96", "--gaussians", "1500"];
-    dir.ok(&[&args[..], &size[..]].concat());
-    dir.ok(&["uncertainty", "--model", "S/oracle", "--scene", "S", "--out", "U0"]);
-    let oracle = Model::load(&dir.join("S/oracle")).unwrap();
-    let u0 =
-        usplat4d::tables::uncertainty::UncertaintyReader::open(&dir.join("U0/uncertainty.parquet"))
-            .unwrap();
-    let nt = oracle.num_frames();
-    let seen: Vec<Vec<u32>> = (0..nt).map(|t| u0.frame(t).unwrap().n_pixels).collect();
-    let truth: Vec<Vec<[f32; 3]>> = (0..nt).map(|t| oracle.frame(t).unwrap().position).collect();
-    let drift = drifted_prior(&dir, &oracle, |i, t| seen[t][i] == 0, 0.1, 0);
-    let (offset, pairs) = (drift.offset, drift.pairs());
-    let common = ["--model", "drifted", "--scene", "S", "--steps", "30", "--lr-position", "0.01"];
-    dir.ok(&[&["optimize", "--recipe", "vanilla", "--out", "V"][..], &common[..]].concat());
-    let ids = &oracle.gaussians.id;
-    let mut runs = vec![
-        drift_errors(&dir.join("drifted"), &truth, ids, &pairs),
-        drift_errors(&dir.join("V"), &truth, ids, &pairs),
-    ];
-    for profile in ["paper", "release"] {
-        graph_stages(&dir, "drifted", profile);
-        let out = format!("G_{profile}");
-        let mut a: Vec<String> =
-            ["optimize", "--out", &out].iter().chain(&common).map(|s| s.to_string()).collect();
-        a.extend(usplat4d_args(profile));
-        let a: Vec<&str> = a.iter().map(String::as_str).collect();
-        dir.ok(&a);
-        runs.push(drift_errors(&dir.join(&out), &truth, ids, &pairs));
+    let mut assertions = None;
+    for along_ray in [false, true] {
+        let dir = Dir::new();
+        let gltf = repo().join("pipelines/data/Fox.glb");
+        let args = ["synth", "--gltf", gltf.to_str().unwrap(), "--animation", "Walk", "--out", "S"];
+        let size = ["--frames", "12", "--width", "96", "--height", "96", "--gaussians", "1500"];
+        dir.ok(&[&args[..], &size[..]].concat());
+        dir.ok(&["uncertainty", "--model", "S/oracle", "--scene", "S", "--out", "U0"]);
+        let oracle = Model::load(&dir.join("S/oracle")).unwrap();
+        let u0 = usplat4d::tables::uncertainty::UncertaintyReader::open(
+            &dir.join("U0/uncertainty.parquet"),
+        )
+        .unwrap();
+        let nt = oracle.num_frames();
+        let seen: Vec<Vec<u32>> = (0..nt).map(|t| u0.frame(t).unwrap().n_pixels).collect();
+        let truth: Vec<Vec<[f32; 3]>> =
+            (0..nt).map(|t| oracle.frame(t).unwrap().position).collect();
+        let scene = usplat4d::scene::Scene::load(&dir.join("S")).unwrap();
+        let centres: Vec<[f64; 3]> =
+            scene.train_by_frame().iter().map(|c| c.center().to_array()).collect();
+        let towards =
+            if along_ray { DriftDirection::AwayFrom(&centres) } else { DriftDirection::Random };
+        let drift = drifted_prior(&dir, &oracle, |i, t| seen[t][i] == 0, (0.1, towards), 0);
+        let pairs = drift.pairs();
+        let runs = recovery_runs(&dir, &truth, &oracle.gaussians.id, &pairs);
+        let errors: Vec<_> = runs.iter().map(|r| r.1.clone()).collect();
+        // Prior, vanilla and the paper profile on every drifted pair; all runs on the pairs the release
+        // keeps (it culls most non-keys).
+        let ((n3, m3), (n5, m5)) = (common_means(&errors[..4]), common_means(&errors));
+        let kind = if along_ray { "along the viewing rays" } else { "random directions" };
+        println!("recovery, drift {:.3} in {kind}, {} drifted pairs:", drift.offset, pairs.len());
+        for (k, (m, _, psnr)) in runs.iter().enumerate() {
+            let first = m3.get(k).map_or("-".to_string(), |e| format!("{e:.4}"));
+            println!(
+                "  {m:>17}: error {first} on {n3} pairs, {:.4} on the {n5} the release keeps; \
+                 far-view PSNR {psnr:.2} dB",
+                m5[k]
+            );
+        }
+        if !along_ray {
+            assertions = Some((n3, m3, runs.iter().map(|r| r.2).collect::<Vec<_>>()));
+        }
     }
-    // Paper profile against vanilla on every drifted pair; the release culls most non-keys,
-    // so its numbers are over the pairs it keeps.
-    let (all, m) = common_means(&runs[..3]);
-    let (prior, vanilla, paper) = (m[0], m[1], m[2]);
-    let (kept, r) = common_means(&runs);
-    let psnr: Vec<f64> =
-        ["drifted", "V", "G_paper", "G_release"].iter().map(|m| far_view_psnr(&dir, m)).collect();
-    println!(
-        "recovery (offset {offset:.3}): mean error on {all} of {} drifted pairs: prior \
-         {prior:.4}, vanilla {vanilla:.4}, usplat4d paper {paper:.4}; on the {kept} pairs the \
-         release keeps: vanilla {:.4}, release {:.4}; far-view PSNR prior {:.2}, vanilla {:.2}, \
-         paper {:.2}, release {:.2} dB",
-        pairs.len(),
-        r[1],
-        r[3],
-        psnr[0],
-        psnr[1],
-        psnr[2],
-        psnr[3]
-    );
-    assert!(all >= 50, "only {all} drifted pairs");
-    assert!(paper < vanilla, "usplat4d (paper) {paper:.4} vs vanilla {vanilla:.4}");
+    let (n, error, psnr) = assertions.unwrap();
+    assert!(n >= 50, "only {n} drifted pairs");
+    assert!(error[2] < error[1], "usplat4d (paper) {:.4} vs vanilla {:.4}", error[2], error[1]);
     assert!(
         psnr[2] > psnr[1],
         "far views: usplat4d (paper) {:.2} vs vanilla {:.2}",

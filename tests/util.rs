@@ -181,16 +181,27 @@ impl Drift {
     }
 }
 
+/// Which way [`drifted_prior`] displaces a Gaussian.
+#[allow(dead_code)]
+pub enum DriftDirection<'a> {
+    /// One random direction per Gaussian: a drifted point may come out from behind its
+    /// occluder and be seen.
+    Random,
+    /// Away from the camera centre of each frame (`[T]`), along the viewing ray: an occluded
+    /// point stays occluded, as under a monocular depth error.
+    AwayFrom(&'a [[f64; 3]]),
+}
+
 /// The drifted prior of `oracle` in `dir/drifted`: a seeded half of the dynamic Gaussians
-/// (seed 5), each displaced along one random direction by `fraction` of the bounding-box
-/// diagonal of frame 0, at the frames where `unseen(i, t)` (the oracle run does not see
+/// (seed 5), each displaced by `fraction` of the bounding-box diagonal of frame 0 in the
+/// direction `towards`, at the frames where `unseen(i, t)` (the oracle run does not see
 /// Gaussian i at frame t) and `margin` frames either side.
 #[allow(dead_code)]
 pub fn drifted_prior(
     dir: &Dir,
     oracle: &usplat4d::model::Model,
     unseen: impl Fn(usize, usize) -> bool,
-    fraction: f32,
+    (fraction, towards): (f32, DriftDirection),
     margin: usize,
 ) -> Drift {
     let mut states: Vec<_> = (0..oracle.num_frames()).map(|t| oracle.frame(t).unwrap()).collect();
@@ -213,7 +224,15 @@ pub fn drifted_prior(
                 window[i][w] = true;
             }
         }
-        for (s, _) in states.iter_mut().zip(&window[i]).filter(|(_, w)| **w) {
+        for (t, (s, _)) in states.iter_mut().zip(&window[i]).enumerate().filter(|(_, (_, w))| **w) {
+            let d = match towards {
+                DriftDirection::Random => d,
+                DriftDirection::AwayFrom(c) => {
+                    let r = [0, 1, 2].map(|k| s.position[i][k] as f64 - c[t][k]);
+                    let len = r.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
+                    r.map(|v| (v / len) as f32 * offset)
+                }
+            };
             for k in 0..3 {
                 s.position[i][k] += d[k];
             }

@@ -35,6 +35,9 @@ use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
 use crate::util::rng::rank_key;
 
+mod init;
+pub use init::{GraphInit, InitReport};
+
 /// The metric of the anchor and DQB position terms (profile rows 16-17, 40-42).
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
@@ -95,6 +98,8 @@ pub struct GraphSettings {
     pub edge_keep_ratio: f64,
     /// Canonical frame of the paper's fixed rest lengths.
     pub canonical_frame: usize,
+    /// The graph initialisation before fine-tuning ([`GraphInit`]).
+    pub init: GraphInit,
 }
 
 impl GraphSettings {
@@ -116,6 +121,13 @@ impl GraphSettings {
             lambda_vel_acc: if paper { [0.01, 0.01] } else { [100.0, 1.0] },
             edge_keep_ratio: if paper { 1.0 } else { 0.8 },
             canonical_frame: 0,
+            init: GraphInit {
+                max_iters: if paper { 0 } else { 10_000 },
+                lr: 0.1,
+                edge_keep_ratio: 0.7,
+                batch_frames: 30,
+                acceleration: 0.1,
+            },
         }
     }
 }

@@ -9,7 +9,7 @@
 
 use std::path::PathBuf;
 
-use super::graph_loss::{AnchorMetric, GraphSettings, Reduction};
+use super::graph_loss::{AnchorMetric, GraphInit, GraphSettings, Reduction};
 use super::image_loss::ImageLossWeights;
 use crate::stages::params::{Profile, check};
 
@@ -140,6 +140,24 @@ crate::stage_params! {
         /// Fraction of the key-key edges kept each step.
         edge_keep_ratio: f64 => f64 [check::parsed]
             { paper "1", release "0.8", row "51", heading "Motion" },
+        /// Iteration cap of each fit of the graph initialisation before fine-tuning (the
+        /// non-keys' DQB source poses, then the keys; then the non-keys follow their keys'
+        /// DQB), 0 for none (official-release §5.1; the paper names no procedure, and on
+        /// the drifting priors it cost accuracy: README "Deliberate readings").
+        graph_init_iters: u32 => u32 [check::parsed]
+            { paper "0", release "10000", row "37", heading "Graph initialisation" },
+        /// Adam's starting learning rate of the graph initialisation (plateau schedule).
+        graph_init_lr: f32 => f32 [check::parsed]
+            { paper "0.1", release "0.1", row "37", heading "Graph initialisation" },
+        /// Fraction of the key edges kept per iteration of the key fit.
+        graph_init_edge_keep: f64 => f64 [check::parsed]
+            { paper "0.7", release "0.7", row "38", heading "Graph initialisation" },
+        /// Frames per iteration of the non-key fit.
+        graph_init_batch: usize => usize [check::count]
+            { paper "30", release "30", row "37", heading "Graph initialisation" },
+        /// Weight of the keys' acceleration term in the key fit.
+        graph_init_acc: f64 => f64 [check::parsed]
+            { paper "0.1", release "0.1", row "37", heading "Graph initialisation" },
         /// Neighbours of the vanilla recipe's kNN motion graph.
         knn_k: usize => usize [check::parsed]
             { paper "8", release "8", row "", heading "Motion" },
@@ -321,6 +339,13 @@ impl OptimizeSettings {
                 key_motion: lg * g.key_motion,
                 lambda_vel_acc: [v.lambda_vel, v.lambda_acc],
                 edge_keep_ratio: v.edge_keep_ratio,
+                init: GraphInit {
+                    max_iters: v.graph_init_iters,
+                    lr: v.graph_init_lr,
+                    edge_keep_ratio: v.graph_init_edge_keep,
+                    batch_frames: v.graph_init_batch,
+                    acceleration: v.graph_init_acc,
+                },
                 ..g
             },
             knn_k: v.knn_k,

@@ -235,8 +235,13 @@ pub fn run(p: &OptimizeParams, ctx: &Context) -> anyhow::Result<()> {
 }
 
 /// [`run`], returning the wall time of each phase summed over the steps this run took
-/// after its first (the first is warm-up), and its CPU time with `cpu_time`.
-pub fn run_timed(p: &OptimizeParams, ctx: &Context, cpu_time: bool) -> anyhow::Result<PhaseTimes> {
+/// after its first (the first is warm-up), and its CPU time with `cpu_time`; and the wall
+/// seconds of the graph initialisation before step 0 (0 when none ran).
+pub fn run_timed(
+    p: &OptimizeParams,
+    ctx: &Context,
+    cpu_time: bool,
+) -> anyhow::Result<(PhaseTimes, f64)> {
     let _span = tracing::info_span!("optimize").entered();
     let s = p.settings()?;
     let model = Model::load(&p.model)?;
@@ -314,6 +319,22 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context, cpu_time: bool) -> anyhow::R
             *k = KnnMotion::from_tensors(&c.graph)
                 .ok_or_else(|| anyhow::anyhow!("{}: no kNN graph", ckpt_path.display()))?;
         }
+    }
+    let mut init_seconds = 0.0;
+    if let (Objective::Graph(o), 0) = (&mut objective, c.step) {
+        let bar = ctx.progress(s.graph.init.max_iters as u64, "graph init");
+        let started = Instant::now();
+        let r = o.initialise(&mut c.state.poses, &s.graph.init, s.seed, &|what, k| {
+            bar.set_message(what.to_string());
+            bar.set_position(k as u64);
+        });
+        bar.finish_and_clear();
+        init_seconds = started.elapsed().as_secs_f64();
+        ctx.info(format!(
+            "optimize: graph initialisation: non-key source poses {} iterations (loss {:.4}), \
+             keys {} iterations (loss {:.4}), {:.1} s",
+            r.nonkey_iters, r.nonkey_loss, r.key_iters, r.key_loss, init_seconds
+        ));
     }
     let render = RenderSettings::default();
     views.preload(render.background)?;
@@ -440,7 +461,7 @@ pub fn run_timed(p: &OptimizeParams, ctx: &Context, cpu_time: bool) -> anyhow::R
     if dir.exists() {
         std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
     }
-    Ok(times)
+    Ok((times, init_seconds))
 }
 
 /// The trained model, the training log, and (usplat4d) the roles and graph of the trained
