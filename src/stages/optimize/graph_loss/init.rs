@@ -19,6 +19,7 @@ use rayon::prelude::*;
 use super::super::adam::Adam;
 use super::super::motion;
 use super::super::poses::{PoseGrads, Poses};
+use super::super::smoothness;
 use super::super::train::batch_frames;
 use super::{GraphObjective, Reduction, dqb, q4};
 use crate::util::rng::mix;
@@ -177,7 +178,7 @@ impl GraphObjective {
         let form = self.s.motion;
         let nacc = match (form, self.s.reduction) {
             (motion::MotionForm::Paper, Reduction::Sum) => 1.0,
-            _ => motion::smoothness_means(self.frames, keys.len()).1,
+            _ => smoothness::smoothness_means(self.frames, keys.len()).1,
         };
         // The prep weighs the key edge terms 1 (release: `L_rigid_extra` unscaled; paper:
         // L^motion,key of Eq. 9), not fine-tuning's λ_graph·λ_key.
@@ -187,15 +188,15 @@ impl GraphObjective {
         while iters < init.max_iters {
             self.g_w_raw.fill(0.0);
             self.g_rest.fill(0.0);
-            let anchor = self.anchor(poses, &keys, 1.0, &mut grads);
+            let [anchor, _] = self.anchors(poses, [1.0, 0.0], &mut grads);
             let edges: f64 = self
                 .key_motion(poses, mix(seed ^ 0x6b65_7973 ^ iters as u64), &mut grads)
                 .iter()
                 .map(|(_, v)| v)
                 .sum();
-            let [_, acc] = motion::stream_frames(poses, &keys, 2, &mut grads, |tr, g| {
-                motion::smoothness(tr, form, (nacc, 0.0), (nacc, init.acceleration), g)
-            });
+            let accel = (nacc, init.acceleration);
+            let [_, acc] =
+                smoothness::smoothness(poses, &keys, form, (nacc, 0.0), accel, &mut grads);
             loss = anchor + edges + init.acceleration * acc;
             for (k, &o) in rows.iter().enumerate() {
                 gp[3 * k..3 * k + 3].copy_from_slice(&grads.position[o]);
