@@ -32,14 +32,16 @@ use glam::DMat3;
 use rayon::prelude::*;
 
 use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
-use super::nonkey_weights::{self, NonkeyWeights, Row};
+use super::nonkey_weights::NonkeyWeights;
 use super::poses::{PoseGrads, Poses};
 use super::timing::PhaseTimes;
-use crate::math::dqb::{self, Dq};
 use crate::math::quat64::{self as q4, M3, V3};
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
 use crate::util::rng::rank_key;
+use dqb_term::{DqbScratch, Pairs};
+
+mod dqb_term;
 
 /// The metric of the anchor and DQB position terms (profile rows 16-17, 40-42).
 #[derive(
@@ -175,15 +177,8 @@ pub struct GraphObjective {
     t_hat: Vec<u32>,
     /// λ / unit² of [`NonkeyWeights::Current`].
     nk_lambda: f64,
-    /// The (key, t̂) pair of each non-key edge `[E_n]`; the distinct pairs `[P]` sorted by key
-    /// then t̂, their edges (CSR `pair_off`, `pair_edges`) and each key's pairs
-    /// (`key_pair_off[k]..key_pair_off[k+1]`).
-    nk_pair: Vec<u32>,
-    pair_key: Vec<u32>,
-    pair_t: Vec<u32>,
-    pair_off: Vec<usize>,
-    pair_edges: Vec<u32>,
-    key_pair_off: Vec<usize>,
+    /// The distinct (key, t̂) pairs of the non-key edges.
+    pairs: Pairs,
     /// Trainable source poses `[nu, 3]`, `[nu, 4]`.
     src_p: Vec<f32>,
     src_q: Vec<f32>,
@@ -302,32 +297,7 @@ impl GraphObjective {
         if s.nonkey_weights == NonkeyWeights::Current && !(lambda.is_finite() && lambda > 0.0) {
             return Err(format!("non-key weights from distances need λ > 0, got {lambda}"));
         }
-        // the distinct (key, t̂) pairs of the non-key edges, sorted by key then t̂
-        let mut by_pair: Vec<(u32, u32, u32)> = (0..nu)
-            .flat_map(|u| (nk_off[u]..nk_off[u + 1]).map(move |e| (u, e)))
-            .map(|(u, e)| (nk_key[e], inp.t_hat[u], e as u32))
-            .collect();
-        by_pair.sort_unstable();
-        let mut nk_pair = vec![0u32; nk_key.len()];
-        let (mut pair_key, mut pair_t, mut pair_off, mut pair_edges) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::with_capacity(by_pair.len()));
-        for (i, &(k, th, e)) in by_pair.iter().enumerate() {
-            if i == 0 || (by_pair[i - 1].0, by_pair[i - 1].1) != (k, th) {
-                pair_off.push(pair_edges.len());
-                pair_key.push(k);
-                pair_t.push(th);
-            }
-            nk_pair[e as usize] = (pair_key.len() - 1) as u32;
-            pair_edges.push(e);
-        }
-        pair_off.push(pair_edges.len());
-        let mut key_pair_off = vec![0usize; inp.keys.len() + 1];
-        for &k in &pair_key {
-            key_pair_off[k as usize + 1] += 1;
-        }
-        for k in 0..inp.keys.len() {
-            key_pair_off[k + 1] += key_pair_off[k];
-        }
+        let pairs = Pairs::new(&nk_off, &nk_key, inp.t_hat, inp.keys.len());
         let n_edges = nk_key.len();
         let mut obj = GraphObjective {
             frames: t,
@@ -346,12 +316,7 @@ impl GraphObjective {
             nk_w,
             t_hat: inp.t_hat.to_vec(),
             nk_lambda: inp.nonkey_lambda,
-            nk_pair,
-            pair_key,
-            pair_t,
-            pair_off,
-            pair_edges,
-            key_pair_off,
+            pairs,
             g_src_p: vec![0.0; src_p.len()],
             g_src_q: vec![0.0; src_q.len()],
             src_p,
@@ -376,9 +341,7 @@ impl GraphObjective {
                 .collect(),
             s,
         };
-        let mut sc = std::mem::take(&mut obj.scratch);
-        obj.blend_weights(&inp.initial.position, &mut sc.weights);
-        obj.scratch = sc;
+        obj.blend_weights_of(&inp.initial.position);
         Ok(obj)
     }
 
@@ -822,443 +785,12 @@ impl GraphObjective {
         }
         out
     }
-
-    /// mean(Δw²) over the non-key edges and mean(offset²) over the non-keys' offsets
-    /// (the release's L2 penalties); adds their weighted gradients.
-    fn offset_penalties(&mut self) -> [f64; 2] {
-        let mut out = [0.0; 2];
-        let s = &self.s;
-        for (k, (v, g, w)) in [
-            (&self.dw, &mut self.g_dw, s.nonkey_dweight_l2),
-            (&self.offsets, &mut self.g_offsets, s.nonkey_offset_l2),
-        ]
-        .into_iter()
-        .enumerate()
-        {
-            if v.is_empty() {
-                continue;
-            }
-            let n = v.len() as f64;
-            out[k] = v.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>() / n;
-            for (g, &x) in g.iter_mut().zip(v) {
-                *g += (2.0 * w * x as f64 / n) as f32;
-            }
-        }
-        out
-    }
-
-    /// The blend weights w' of every non-key edge ([`super::nonkey_weights`]) from
-    /// `positions` `[T, N]` (read by [`NonkeyWeights::Current`]) into `nk_w_eff`, keeping each
-    /// edge's log-base, θ and Δw in `sc` for [`Self::blend_weights_vjp`].
-    fn blend_weights(&mut self, positions: &[[f32; 3]], sc: &mut WeightScratch) {
-        let ne = self.nk_key.len();
-        for v in [&mut sc.l, &mut sc.theta, &mut sc.dw] {
-            v.resize(ne, 0.0);
-        }
-        for u in 0..self.nonkeys.len() {
-            let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
-            let th = self.t_hat[u] as usize * self.n;
-            let pu = positions[th + self.nonkeys[u] as usize];
-            for e in a..b {
-                let k = self.nk_key[e] as usize;
-                sc.l[e] = match self.s.nonkey_weights {
-                    NonkeyWeights::Table => self.nk_w[e].ln(),
-                    NonkeyWeights::Current => {
-                        let pk = positions[th + self.keys[k] as usize];
-                        -self.nk_lambda * dist2(pu, pk)
-                    }
-                };
-                sc.theta[e] = self.theta[k] as f64;
-                sc.dw[e] = self.dw[e] as f64;
-            }
-            let r = Row { l: &sc.l[a..b], theta: &sc.theta[a..b], dw: &sc.dw[a..b] };
-            nonkey_weights::row(r, &mut self.nk_w_eff[a..b]);
-        }
-    }
-
-    /// VJP of [`Self::blend_weights`] for the cotangents `g_w` of w' `[E_n]`: adds to the
-    /// gradients of θ and Δw and, with [`NonkeyWeights::Current`], of the positions at t̂.
-    fn blend_weights_vjp(
-        &mut self,
-        positions: &[[f32; 3]],
-        g_w: &[f64],
-        sc: &mut WeightScratch,
-        grads: &mut PoseGrads,
-    ) {
-        let ne = self.nk_key.len();
-        for v in [&mut sc.g_l, &mut sc.g_theta, &mut sc.g_dw] {
-            v.clear();
-            v.resize(ne, 0.0);
-        }
-        let mut g_theta = vec![0.0f64; self.keys.len()];
-        for u in 0..self.nonkeys.len() {
-            let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
-            if a == b {
-                continue;
-            }
-            sc.tmp.resize(2 * (b - a), 0.0);
-            let r = Row { l: &sc.l[a..b], theta: &sc.theta[a..b], dw: &sc.dw[a..b] };
-            let (gl, gt, gd) = (&mut sc.g_l[a..b], &mut sc.g_theta[a..b], &mut sc.g_dw[a..b]);
-            nonkey_weights::row_vjp(r, &g_w[a..b], &mut sc.tmp, gl, gt, gd);
-            let th = self.t_hat[u] as usize * self.n;
-            let node = th + self.nonkeys[u] as usize;
-            for e in a..b {
-                let k = self.nk_key[e] as usize;
-                g_theta[k] += sc.g_theta[e];
-                self.g_dw[e] += sc.g_dw[e] as f32;
-                if self.s.nonkey_weights == NonkeyWeights::Current {
-                    // L = −λ‖p_u − p_k‖²
-                    let key = th + self.keys[k] as usize;
-                    let (pu, pk) = (positions[node], positions[key]);
-                    for c in 0..3 {
-                        let g = -2.0 * self.nk_lambda * sc.g_l[e] * (pu[c] - pk[c]) as f64;
-                        grads.position[node][c] += g as f32;
-                        grads.position[key][c] -= g as f32;
-                    }
-                }
-            }
-        }
-        for (g, v) in self.g_theta.iter_mut().zip(g_theta) {
-            *g += v as f32;
-        }
-    }
-
-    /// The DQB position and rotation terms (unweighted) over non-keys and the batch frames.
-    /// Frame by frame: each (key, t̂) pair's relative transform (parallel over pairs), the
-    /// non-keys (parallel over fixed chunks, each writing its own slices), then the pairs'
-    /// cotangents (parallel over pairs and keys, each summing its edges in a fixed order), so
-    /// the result does not depend on the number of threads. Scratch is kept across steps.
-    fn dqb_terms(&mut self, poses: &Poses, frames: &[usize], grads: &mut PoseGrads) -> [f64; 2] {
-        let s = &self.s;
-        if (s.dqb == 0.0 && s.dqb_rotation == 0.0) || self.nonkeys.is_empty() {
-            return [0.0; 2];
-        }
-        let mut sc = std::mem::take(&mut self.scratch);
-        let out = self.dqb_with(poses, frames, grads, &mut sc);
-        self.scratch = sc;
-        out
-    }
-
-    /// [`Self::dqb_terms`] with its scratch.
-    fn dqb_with(
-        &mut self,
-        poses: &Poses,
-        frames: &[usize],
-        grads: &mut PoseGrads,
-        sc: &mut DqbScratch,
-    ) -> [f64; 2] {
-        const CHUNK: usize = 256;
-        let (n, nk, nu) = (self.n, self.keys.len(), self.nonkeys.len());
-        let (ne, np) = (self.nk_key.len(), self.pair_key.len());
-        self.blend_weights(&poses.position, &mut sc.weights);
-        // Unit dual quaternions of the keys' poses at every frame `[T, K]`.
-        let keys = &self.keys;
-        sc.dq_key.resize(self.frames * nk, (dqb::IDENTITY, 1.0));
-        sc.dq_key.par_iter_mut().enumerate().for_each(|(x, d)| {
-            let o = (x / nk) * n + keys[x % nk] as usize;
-            *d = dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o]));
-        });
-        let fill = |v: &mut Vec<Dq>, len: usize| {
-            v.clear();
-            v.resize(len, [0.0; 8]);
-        };
-        fill(&mut sc.g_dq, self.frames * nk);
-        fill(&mut sc.pair_g_dst, np);
-        fill(&mut sc.pair_g_src, np);
-        sc.rel.resize(np, (dqb::IDENTITY, 1.0));
-        sc.edge.clear();
-        sc.edge.resize(ne, EdgeCot::default());
-        sc.nonkey.clear();
-        sc.nonkey.resize(nu, NonkeyCot::default());
-        let linked = (0..nu).filter(|&u| self.nk_off[u + 1] > self.nk_off[u]).count();
-        let norm = match self.s.reduction {
-            Reduction::Sum => 1.0,
-            Reduction::Mean => 1.0 / (linked * frames.len()).max(1) as f64,
-        };
-        let u_bounds: Vec<usize> = (0..nu).step_by(CHUNK).chain([nu]).collect();
-        let e_bounds: Vec<usize> = u_bounds.iter().map(|&u| self.nk_off[u]).collect();
-        let mut sums = [0.0; 2];
-        for &t in frames {
-            let dq = &sc.dq_key;
-            let (pk, pt) = (&self.pair_key, &self.pair_t);
-            sc.rel.par_iter_mut().enumerate().for_each(|(p, r)| {
-                let (k, th) = (pk[p] as usize, pt[p] as usize);
-                *r = dqb::relative(&dq[t * nk + k].0, &dq[th * nk + k].0);
-            });
-            let rel = &sc.rel;
-            let parts: Vec<[f64; 2]> = split_at_bounds(&mut sc.edge, &e_bounds)
-                .into_par_iter()
-                .zip(split_at_bounds(&mut sc.nonkey, &u_bounds))
-                .enumerate()
-                .map(|(c, (edges, nonkeys))| {
-                    let chunk = Chunk { range: u_bounds[c]..u_bounds[c + 1], edges, nonkeys };
-                    self.dqb_nonkeys(poses, t, rel, norm, chunk)
-                })
-                .collect();
-            for p in parts {
-                sums[0] += p[0];
-                sums[1] += p[1];
-            }
-            for (u, c) in sc.nonkey.iter().enumerate() {
-                if self.nk_off[u + 1] > self.nk_off[u] {
-                    let o = t * n + self.nonkeys[u] as usize;
-                    for k in 0..3 {
-                        grads.position[o][k] += c.pose[k] as f32;
-                    }
-                    for k in 0..4 {
-                        grads.rotation[o][k] += c.pose[3 + k] as f32;
-                    }
-                }
-            }
-            // each pair's cotangent: the sum of its edges', then through the relative transform
-            let edge = &sc.edge;
-            let (po, pe) = (&self.pair_off, &self.pair_edges);
-            sc.pair_g_dst.par_iter_mut().zip(sc.pair_g_src.par_iter_mut()).enumerate().for_each(
-                |(p, (gd, gs))| {
-                    let mut g = [0.0; 8];
-                    for &e in &pe[po[p]..po[p + 1]] {
-                        for c in 0..8 {
-                            g[c] += edge[e as usize].rel[c];
-                        }
-                    }
-                    let (k, th) = (pk[p] as usize, pt[p] as usize);
-                    let (d, s) =
-                        dqb::relative_vjp(&dq[t * nk + k].0, &dq[th * nk + k].0, rel[p].1, &g);
-                    *gd = d;
-                    for c in 0..8 {
-                        gs[c] += s[c];
-                    }
-                },
-            );
-            let (kpo, gdst) = (&self.key_pair_off, &sc.pair_g_dst);
-            sc.g_dq[t * nk..(t + 1) * nk].par_iter_mut().enumerate().for_each(|(k, g)| {
-                for d in &gdst[kpo[k]..kpo[k + 1]] {
-                    for c in 0..8 {
-                        g[c] += d[c];
-                    }
-                }
-            });
-        }
-        for p in 0..np {
-            let x = self.pair_t[p] as usize * nk + self.pair_key[p] as usize;
-            for c in 0..8 {
-                sc.g_dq[x][c] += sc.pair_g_src[p][c];
-            }
-        }
-        for (u, c) in sc.nonkey.iter().enumerate() {
-            for k in 0..3 {
-                self.g_src_p[3 * u + k] = c.src[k] as f32;
-            }
-            for k in 0..4 {
-                self.g_src_q[4 * u + k] = c.src[3 + k] as f32;
-            }
-            if !self.offsets.is_empty() {
-                for k in 0..7 {
-                    self.g_offsets[7 * u + k] += c.offset[k] as f32;
-                }
-            }
-        }
-        sc.g_w.clear();
-        sc.g_w.extend(sc.edge.iter().map(|e| e.w));
-        self.blend_weights_vjp(&poses.position, &sc.g_w, &mut sc.weights, grads);
-        // the keys' poses
-        let (g_dq, dq, keys) = (&sc.g_dq, &sc.dq_key, &self.keys);
-        sc.key_grad.resize(self.frames * nk, ([0.0; 4], [0.0; 3]));
-        sc.key_grad.par_iter_mut().enumerate().for_each(|(x, kg)| {
-            let g = &g_dq[x];
-            if g.iter().any(|v| *v != 0.0) {
-                let o = (x / nk) * n + keys[x % nk] as usize;
-                let (d, qn) = &dq[x];
-                *kg = dqb::from_pose_vjp(d, *qn, q4::v64(poses.position[o]), g);
-            }
-        });
-        for (x, (gq, gp)) in sc.key_grad.iter().enumerate() {
-            if g_dq[x].iter().all(|v| *v == 0.0) {
-                continue;
-            }
-            let o = (x / nk) * n + keys[x % nk] as usize;
-            for c in 0..3 {
-                grads.position[o][c] += gp[c] as f32;
-            }
-            for c in 0..4 {
-                grads.rotation[o][c] += gq[c] as f32;
-            }
-        }
-        [sums[0] * norm, sums[1] * norm]
-    }
-
-    /// The DQB terms of the chunk's non-keys at frame `t` given the pairs' relative
-    /// transforms `rel` `[P]`: returns the chunk's (position, rotation) sums; writes each
-    /// edge's blend cotangent and adds its weight cotangent, and writes each non-key's pose
-    /// cotangent at t and adds its source-pose and offset ones.
-    fn dqb_nonkeys(
-        &self,
-        poses: &Poses,
-        t: usize,
-        rel: &[(Dq, f64)],
-        norm: f64,
-        chunk: Chunk,
-    ) -> [f64; 2] {
-        let Chunk { range, edges: ec, nonkeys: uc } = chunk;
-        let s = &self.s;
-        let (wp, wq) = (s.dqb * norm, s.dqb_rotation * norm);
-        let e0 = self.nk_off[range.start];
-        let mut sums = [0.0; 2];
-        for (lu, u) in range.enumerate() {
-            let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
-            if a == b {
-                continue;
-            }
-            let node = self.nonkeys[u] as usize;
-            let w = &self.nk_w_eff[a..b];
-            let mut blend = [0.0; 8];
-            for e in a..b {
-                let r = &rel[self.nk_pair[e] as usize].0;
-                for c in 0..8 {
-                    blend[c] += w[e - a] * r[c];
-                }
-            }
-            let sp = [0, 1, 2].map(|c| self.src_p[3 * u + c] as f64);
-            let sq = [0, 1, 2, 3].map(|c| self.src_q[4 * u + c] as f64);
-            let warp = dqb::Warp::new(&blend, sp, sq);
-            let (mut out_p, mut out_q) = (warp.out.p, warp.out.q);
-            if !self.offsets.is_empty() {
-                let off = &self.offsets[7 * u..7 * u + 7];
-                for c in 0..3 {
-                    out_p[c] += off[c] as f64;
-                }
-                for c in 0..4 {
-                    out_q[c] += off[3 + c] as f64;
-                }
-            }
-            let o = t * self.n + node;
-            let x = [0, 1, 2].map(|c| poses.position[o][c] as f64 - out_p[c]);
-            let k = match s.anchor_metric {
-                AnchorMetric::Release => Some([1.0; 3]),
-                _ => self.metric(t, node),
-            };
-            let (mut g_p, mut g_q) = ([0.0; 3], [0.0; 4]);
-            let cot = &mut uc[lu];
-            cot.pose = [0.0; 7];
-            if let Some(k) = k {
-                let (d, g) = self.distance(t, k, x);
-                sums[0] += d;
-                g_p = g.map(|v| -wp * v);
-                for c in 0..3 {
-                    cot.pose[c] = wp * g[c];
-                }
-            }
-            if s.dqb_rotation != 0.0 {
-                let (qu, qn) = q4::normalize(q4::q64(poses.rotation[o]));
-                let r = [0, 1, 2, 3].map(|c| out_q[c] - qu[c]);
-                let len = q4::norm(r);
-                sums[1] += len;
-                if len > 0.0 {
-                    g_q = r.map(|v| wq * v / len);
-                    let own = q4::normalize_vjp(qu, qn, g_q.map(|v| -v));
-                    cot.pose[3..].copy_from_slice(&own);
-                }
-            }
-            let wg = warp.vjp(g_p, g_q);
-            for c in 0..3 {
-                cot.src[c] += wg.src_p[c];
-                cot.offset[c] += g_p[c];
-            }
-            for c in 0..4 {
-                cot.src[3 + c] += wg.src_q[c];
-                cot.offset[3 + c] += g_q[c];
-            }
-            for e in a..b {
-                let r = &rel[self.nk_pair[e] as usize].0;
-                let cot = &mut ec[e - e0];
-                cot.rel = wg.blend.map(|v| w[e - a] * v);
-                cot.w += (0..8).map(|c| r[c] * wg.blend[c]).sum::<f64>();
-            }
-        }
-        sums
-    }
-}
-
-/// A chunk of non-keys of [`GraphObjective::dqb_terms`] with its own slices of the
-/// cotangents: `edges` of its non-keys' edges, `nonkeys` of its non-keys.
-struct Chunk<'a> {
-    range: std::ops::Range<usize>,
-    edges: &'a mut [EdgeCot],
-    nonkeys: &'a mut [NonkeyCot],
-}
-
-/// ‖a − b‖² in f64.
-fn dist2(a: [f32; 3], b: [f32; 3]) -> f64 {
-    (0..3).map(|c| (a[c] as f64 - b[c] as f64).powi(2)).sum()
-}
-
-/// `v` cut at `bounds` (ascending, from 0 to `v.len()`) into consecutive slices.
-fn split_at_bounds<'a, T>(mut v: &'a mut [T], bounds: &[usize]) -> Vec<&'a mut [T]> {
-    let mut out = Vec::with_capacity(bounds.len().saturating_sub(1));
-    for w in bounds.windows(2) {
-        let (head, tail) = std::mem::take(&mut v).split_at_mut(w[1] - w[0]);
-        out.push(head);
-        v = tail;
-    }
-    out
-}
-
-/// The cotangents of one non-key edge in [`GraphObjective::dqb_terms`].
-#[derive(Debug, Clone, Copy, Default)]
-struct EdgeCot {
-    /// Of its key's relative transform at the current frame: w'_e · g_blend.
-    rel: Dq,
-    /// Of its blend weight w'_e, summed over the batch frames: Σ_t ⟨rel_e, g_blend⟩.
-    w: f64,
-}
-
-/// The cotangents of one non-key in [`GraphObjective::dqb_terms`].
-#[derive(Debug, Clone, Copy, Default)]
-struct NonkeyCot {
-    /// Of its pose (position, raw rotation) at the current frame.
-    pose: [f64; 7],
-    /// Of its source pose (position, raw rotation), summed over the batch frames.
-    src: [f64; 7],
-    /// Of its pose offsets, summed over the batch frames.
-    offset: [f64; 7],
-}
-
-/// Buffers of the blend weights' forward and backward passes, `[E_n]` each.
-#[derive(Debug, Default)]
-struct WeightScratch {
-    l: Vec<f64>,
-    theta: Vec<f64>,
-    dw: Vec<f64>,
-    g_l: Vec<f64>,
-    g_theta: Vec<f64>,
-    g_dw: Vec<f64>,
-    tmp: Vec<f64>,
-}
-
-/// Buffers of [`GraphObjective::dqb_terms`], kept across steps.
-#[derive(Debug, Default)]
-struct DqbScratch {
-    /// Unit dual quaternions of the keys' poses with ‖q‖, their cotangents and the pose
-    /// cotangents they give `[T, K]`.
-    dq_key: Vec<(Dq, f64)>,
-    g_dq: Vec<Dq>,
-    key_grad: Vec<([f64; 4], [f64; 3])>,
-    /// Per (key, t̂) pair `[P]`: the relative transform at the current frame with its sign,
-    /// the cotangent of the key's dual quaternion at that frame, and that of t̂ summed over
-    /// the batch frames.
-    rel: Vec<(Dq, f64)>,
-    pair_g_dst: Vec<Dq>,
-    pair_g_src: Vec<Dq>,
-    /// Per non-key edge `[E_n]` and per non-key `[nu]`.
-    edge: Vec<EdgeCot>,
-    g_w: Vec<f64>,
-    nonkey: Vec<NonkeyCot>,
-    weights: WeightScratch,
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::math::dqb::{self, Dq};
     use crate::math::quat64::tests::TestRng;
     use crate::stages::params::Profile;
 
@@ -1641,7 +1173,7 @@ mod tests {
     fn current_weights_at_the_prior_are_the_tables_exp_minus_lambda_d2() {
         // the table's weights as the edges stage makes them at p° (λ = 1), normalised by new()
         let table = |p0: &Poses, node: u32, th: usize, key: u32, _: f32| {
-            let d2 = dist2(p0.p(th, node as usize), p0.p(th, key as usize));
+            let d2 = dqb_term::dist2(p0.p(th, node as usize), p0.p(th, key as usize));
             (-d2).exp() as f32
         };
         let s = dqb_only(GraphSettings::defaults(Profile::Release));
