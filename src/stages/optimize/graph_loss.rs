@@ -160,7 +160,10 @@ pub struct GraphObjective {
     n: usize,
     ids: Vec<u32>,
     keys: Vec<u32>,
+    /// Non-key pose indices, ordered by t̂ (stable), and the position there of each non-key
+    /// of the inputs.
     nonkeys: Vec<u32>,
+    nk_order: Vec<u32>,
     /// Key-key edges, compact indices into `keys`, grouped by source.
     ksrc: Vec<u32>,
     kdst: Vec<u32>,
@@ -278,7 +281,11 @@ impl GraphObjective {
         }
         let (mut nk_off, mut nk_key, mut nk_w) = (vec![0], vec![], vec![]);
         let (mut src_p, mut src_q) = (Vec::with_capacity(3 * nu), Vec::with_capacity(4 * nu));
-        for (u, list) in inp.nonkey_edges.iter().enumerate() {
+        // the non-keys ordered by t̂ (stable), for the DQB term's groups
+        let mut order: Vec<usize> = (0..nu).collect();
+        order.sort_by_key(|&u| inp.t_hat[u]);
+        for &u in &order {
+            let list = &inp.nonkey_edges[u];
             let sum: f64 = list.iter().map(|e| e.1 as f64).sum();
             for &(k, w) in list {
                 nk_key.push(compact(k)?);
@@ -297,14 +304,20 @@ impl GraphObjective {
         if s.nonkey_weights == NonkeyWeights::Current && !(lambda.is_finite() && lambda > 0.0) {
             return Err(format!("non-key weights from distances need λ > 0, got {lambda}"));
         }
-        let pairs = Pairs::new(&nk_off, &nk_key, inp.t_hat, inp.keys.len());
+        let t_hat: Vec<u32> = order.iter().map(|&u| inp.t_hat[u]).collect();
+        let pairs = Pairs::new(&nk_off, &nk_key, &t_hat, inp.keys.len());
+        let mut nk_order = vec![0u32; nu];
+        for (v, &u) in order.iter().enumerate() {
+            nk_order[u] = v as u32;
+        }
         let n_edges = nk_key.len();
         let mut obj = GraphObjective {
             frames: t,
             n,
             ids: inp.ids.to_vec(),
             keys: inp.keys.to_vec(),
-            nonkeys: inp.nonkeys.to_vec(),
+            nonkeys: order.iter().map(|&u| inp.nonkeys[u]).collect(),
+            nk_order,
             ksrc,
             kdst,
             g_w_raw: vec![0.0; ne],
@@ -314,7 +327,7 @@ impl GraphObjective {
             nk_off,
             nk_key,
             nk_w,
-            t_hat: inp.t_hat.to_vec(),
+            t_hat,
             nk_lambda: inp.nonkey_lambda,
             pairs,
             g_src_p: vec![0.0; src_p.len()],
@@ -492,7 +505,8 @@ impl GraphObjective {
             let d = learned.then_some(self.rest[e]);
             out.push_trained(id(a), id(b), EdgeKind::KeyKey, w[e] as f32, d);
         }
-        for (u, &nk) in self.nonkeys.iter().enumerate() {
+        for &u in &self.nk_order {
+            let (u, nk) = (u as usize, self.nonkeys[u as usize]);
             for e in self.nk_off[u]..self.nk_off[u + 1] {
                 let key = self.keys[self.nk_key[e] as usize];
                 out.push(id(nk), id(key), EdgeKind::NonkeyKey, self.nk_w_eff[e] as f32);
@@ -1078,14 +1092,21 @@ mod tests {
         new.ids[6] = 200;
         new.carry_over(&old, |id| if id == 200 { 101 } else { id });
         assert_eq!(new.rest, old.rest);
-        assert_eq!(new.src_p[..9], old.src_p[..9], "non-keys 101, 103, 105 keep theirs");
-        assert_eq!(new.src_p[9..], old.src_p[..3], "200 takes its origin's");
         assert!(new.src_q.iter().all(|&x| x == 0.5));
         assert_eq!(new.theta, old.theta, "θ by key id");
-        // edges: non-key 101 [0, 2), 103 [2, 5), 105 [5, 6); 200 has 105's one edge
-        assert_eq!(new.dw[..6], old.dw[..6]);
-        assert_eq!(new.offsets[..21], old.offsets[..21]);
-        assert_eq!(new.offsets[21..], old.offsets[..7], "200 takes its origin's offsets");
+        let at = |o: &GraphObjective, id: u32| {
+            o.nonkeys.iter().position(|&i| o.ids[i as usize] == id).unwrap()
+        };
+        for (id, from) in [(101, 101), (103, 103), (105, 105), (200, 101)] {
+            let (u, v) = (at(&new, id), at(&old, from));
+            assert_eq!(new.src_p[3 * u..3 * u + 3], old.src_p[3 * v..3 * v + 3], "{id}");
+            assert_eq!(new.offsets[7 * u..7 * u + 7], old.offsets[7 * v..7 * v + 7], "{id}");
+            // 200 has no edges (it is the case's edgeless non-key), 101-105 keep their Δw
+            let (a, b) = (new.nk_off[u], new.nk_off[u + 1]);
+            if id != 200 {
+                assert_eq!(new.dw[a..b], old.dw[old.nk_off[v]..old.nk_off[v + 1]], "{id}");
+            }
+        }
         assert!(new.nk_w.iter().all(|&w| w == 0.25), "the table weights, the base of θ and Δw");
     }
 
@@ -1161,12 +1182,22 @@ mod tests {
         for k in 0..2 {
             assert!((got[k] - want[k]).abs() < 1e-12 * want[k].abs(), "{got:?} vs {want:?}");
         }
+        let mut by_edge = HashMap::new();
+        for (u, &i) in obj.nonkeys.iter().enumerate() {
+            for e in obj.nk_off[u]..obj.nk_off[u + 1] {
+                let key = obj.keys[obj.nk_key[e] as usize];
+                by_edge.insert((obj.ids[i as usize], obj.ids[key as usize]), table[e] as f32);
+            }
+        }
         let learned = obj.learned_edges();
-        let w: Vec<f32> = (0..learned.len())
-            .filter(|&e| learned.kind[e] == EdgeKind::NonkeyKey)
-            .map(|e| learned.weight[e])
-            .collect();
-        assert_eq!(w, table.iter().map(|&x| x as f32).collect::<Vec<_>>());
+        let nonkey_edges = (0..learned.len()).filter(|&e| learned.kind[e] == EdgeKind::NonkeyKey);
+        let mut srcs = Vec::new();
+        for e in nonkey_edges {
+            assert_eq!(learned.weight[e], by_edge[&(learned.src[e], learned.dst[e])]);
+            srcs.push(learned.src[e]);
+        }
+        srcs.dedup();
+        assert_eq!(srcs, [101, 103, 105], "in the inputs' order");
     }
 
     #[test]

@@ -4,11 +4,12 @@
 //! T_k(t) T_k(t̂_u)⁻¹ ([`crate::math::dqb`]), the optional pose offsets, the release's L2
 //! penalties on Δw and the offsets, and all their gradients.
 //!
-//! Work per step, frame by frame: each distinct (key, t̂) pair's relative transform once
-//! (parallel over pairs), the non-keys (parallel over fixed chunks, each writing its own
-//! slices of the cotangents), then the pairs' cotangents (parallel over pairs and keys, each
-//! summing its edges in a fixed order); so the result does not depend on the number of
-//! threads. The buffers ([`DqbScratch`]) are kept across steps.
+//! Work per step, frame by frame, parallel over the groups of non-keys that share a t̂ (the
+//! objective orders its non-keys by t̂): each group computes the relative transform of each
+//! of its (key, t̂) pairs once, its non-keys' terms, and accumulates their cotangents per pair
+//! before one VJP per pair, all in its own slices of the buffers; then each key sums its
+//! pairs' cotangents in pair order. So the result does not depend on the number of threads.
+//! The buffers ([`DqbScratch`]) are kept across steps.
 
 use rayon::prelude::*;
 
@@ -19,7 +20,8 @@ use crate::math::dqb::{self, Dq};
 use crate::math::quat64 as q4;
 
 /// The distinct (key, t̂) pairs of the non-key edges, whose relative transforms the edges
-/// share: sorted by key then t̂, with their edges and each key's pairs.
+/// share, sorted by t̂ then key, and the groups of non-keys that share a t̂ (contiguous, as
+/// the objective orders its non-keys by t̂), each with its contiguous edges and pairs.
 #[derive(Debug, Default)]
 pub(super) struct Pairs {
     /// The pair of each non-key edge `[E_n]`.
@@ -27,51 +29,58 @@ pub(super) struct Pairs {
     /// Compact key and t̂ of each pair `[P]`.
     key: Vec<u32>,
     t: Vec<u32>,
-    /// The edges of pair p: `edges[off[p]..off[p + 1]]`, ascending.
-    off: Vec<usize>,
-    edges: Vec<u32>,
-    /// The pairs of key k: `key_off[k]..key_off[k + 1]`.
+    /// The pairs of key k: `key_pairs[key_off[k]..key_off[k + 1]]`, ascending.
     key_off: Vec<usize>,
+    key_pairs: Vec<u32>,
+    /// Group g holds the non-keys `group_u[g]..group_u[g + 1]`, their edges
+    /// `group_e[g]..group_e[g + 1]` and pairs `group_p[g]..group_p[g + 1]` `[G + 1]`.
+    group_u: Vec<usize>,
+    group_e: Vec<usize>,
+    group_p: Vec<usize>,
 }
 
 impl Pairs {
     /// The pairs of the non-key edges given as CSR `nk_off` `[nu + 1]` over compact keys
-    /// `nk_key` `[E_n]`, with each non-key's t̂ `[nu]`, among `num_keys` keys.
+    /// `nk_key` `[E_n]`, with each non-key's t̂ `[nu]` (ascending), among `num_keys` keys.
     pub(super) fn new(nk_off: &[usize], nk_key: &[u32], t_hat: &[u32], num_keys: usize) -> Self {
-        // the distinct (key, t̂) pairs of the non-key edges, sorted by key then t̂
+        debug_assert!(t_hat.is_sorted(), "non-keys ordered by t̂");
         let mut by_pair: Vec<(u32, u32, u32)> = (0..t_hat.len())
             .flat_map(|u| (nk_off[u]..nk_off[u + 1]).map(move |e| (u, e)))
-            .map(|(u, e)| (nk_key[e], t_hat[u], e as u32))
+            .map(|(u, e)| (t_hat[u], nk_key[e], e as u32))
             .collect();
         by_pair.sort_unstable();
-        let mut nk_pair = vec![0u32; nk_key.len()];
-        let (mut pair_key, mut pair_t, mut pair_off, mut pair_edges) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::with_capacity(by_pair.len()));
-        for (i, &(k, th, e)) in by_pair.iter().enumerate() {
-            if i == 0 || (by_pair[i - 1].0, by_pair[i - 1].1) != (k, th) {
-                pair_off.push(pair_edges.len());
-                pair_key.push(k);
-                pair_t.push(th);
+        let mut of_edge = vec![0u32; nk_key.len()];
+        let (mut key, mut t) = (Vec::new(), Vec::new());
+        for (i, &(th, k, e)) in by_pair.iter().enumerate() {
+            if i == 0 || (by_pair[i - 1].0, by_pair[i - 1].1) != (th, k) {
+                key.push(k);
+                t.push(th);
             }
-            nk_pair[e as usize] = (pair_key.len() - 1) as u32;
-            pair_edges.push(e);
+            of_edge[e as usize] = (key.len() - 1) as u32;
         }
-        pair_off.push(pair_edges.len());
-        let mut key_pair_off = vec![0usize; num_keys + 1];
-        for &k in &pair_key {
-            key_pair_off[k as usize + 1] += 1;
+        let mut key_off = vec![0usize; num_keys + 1];
+        for &k in &key {
+            key_off[k as usize + 1] += 1;
         }
         for k in 0..num_keys {
-            key_pair_off[k + 1] += key_pair_off[k];
+            key_off[k + 1] += key_off[k];
         }
-        Pairs {
-            of_edge: nk_pair,
-            key: pair_key,
-            t: pair_t,
-            off: pair_off,
-            edges: pair_edges,
-            key_off: key_pair_off,
+        let mut key_pairs = vec![0u32; key.len()];
+        let mut next = key_off.clone();
+        for (p, &k) in key.iter().enumerate() {
+            key_pairs[next[k as usize]] = p as u32;
+            next[k as usize] += 1;
         }
+        let mut group_u: Vec<usize> =
+            (0..t_hat.len()).filter(|&u| u == 0 || t_hat[u] != t_hat[u - 1]).collect();
+        let group_p = group_u
+            .iter()
+            .map(|&u| t.partition_point(|&x| x < t_hat[u]))
+            .chain([key.len()])
+            .collect();
+        group_u.push(t_hat.len());
+        let group_e = group_u.iter().map(|&u| nk_off[u]).collect();
+        Pairs { of_edge, key, t, key_off, key_pairs, group_u, group_e, group_p }
     }
 }
 
@@ -150,7 +159,8 @@ impl GraphObjective {
             v.clear();
             v.resize(ne, 0.0);
         }
-        let mut g_theta = vec![0.0f64; self.keys.len()];
+        sc.g_theta_key.clear();
+        sc.g_theta_key.resize(self.keys.len(), 0.0);
         for u in 0..self.nonkeys.len() {
             let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
             if a == b {
@@ -164,22 +174,23 @@ impl GraphObjective {
             let node = th + self.nonkeys[u] as usize;
             for e in a..b {
                 let k = self.nk_key[e] as usize;
-                g_theta[k] += sc.g_theta[e];
+                sc.g_theta_key[k] += sc.g_theta[e];
                 self.g_dw[e] += sc.g_dw[e] as f32;
                 if self.s.nonkey_weights == NonkeyWeights::Current {
                     // L = −λ‖p_u − p_k‖²
                     let key = th + self.keys[k] as usize;
                     let (pu, pk) = (positions[node], positions[key]);
                     for c in 0..3 {
-                        let g = -2.0 * self.nk_lambda * sc.g_l[e] * (pu[c] - pk[c]) as f64;
+                        let d = pu[c] as f64 - pk[c] as f64;
+                        let g = -2.0 * self.nk_lambda * sc.g_l[e] * d;
                         grads.position[node][c] += g as f32;
                         grads.position[key][c] -= g as f32;
                     }
                 }
             }
         }
-        for (g, v) in self.g_theta.iter_mut().zip(g_theta) {
-            *g += v as f32;
+        for (g, v) in self.g_theta.iter_mut().zip(&sc.g_theta_key) {
+            *g += *v as f32;
         }
     }
 
@@ -212,7 +223,6 @@ impl GraphObjective {
         grads: &mut PoseGrads,
         sc: &mut DqbScratch,
     ) -> [f64; 2] {
-        const CHUNK: usize = 256;
         let (n, nk, nu) = (self.n, self.keys.len(), self.nonkeys.len());
         let (ne, np) = (self.nk_key.len(), self.pairs.key.len());
         self.blend_weights(&poses.position, &mut sc.weights);
@@ -223,16 +233,12 @@ impl GraphObjective {
             let o = (x / nk) * n + keys[x % nk] as usize;
             *d = dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o]));
         });
-        let fill = |v: &mut Vec<Dq>, len: usize| {
-            v.clear();
-            v.resize(len, [0.0; 8]);
-        };
-        fill(&mut sc.g_dq, self.frames * nk);
-        fill(&mut sc.pair_g_dst, np);
-        fill(&mut sc.pair_g_src, np);
-        sc.rel.resize(np, (dqb::IDENTITY, 1.0));
-        sc.edge.clear();
-        sc.edge.resize(ne, EdgeCot::default());
+        sc.g_dq.clear();
+        sc.g_dq.resize(self.frames * nk, [0.0; 8]);
+        sc.pair.clear();
+        sc.pair.resize(np, PairCot::default());
+        sc.g_w.clear();
+        sc.g_w.resize(ne, 0.0);
         sc.nonkey.clear();
         sc.nonkey.resize(nu, NonkeyCot::default());
         let linked = (0..nu).filter(|&u| self.nk_off[u + 1] > self.nk_off[u]).count();
@@ -240,24 +246,18 @@ impl GraphObjective {
             Reduction::Sum => 1.0,
             Reduction::Mean => 1.0 / (linked * frames.len()).max(1) as f64,
         };
-        let u_bounds: Vec<usize> = (0..nu).step_by(CHUNK).chain([nu]).collect();
-        let e_bounds: Vec<usize> = u_bounds.iter().map(|&u| self.nk_off[u]).collect();
+        let pairs = &self.pairs;
         let mut sums = [0.0; 2];
         for &t in frames {
             let dq = &sc.dq_key;
-            let (pk, pt) = (&self.pairs.key, &self.pairs.t);
-            sc.rel.par_iter_mut().enumerate().for_each(|(p, r)| {
-                let (k, th) = (pk[p] as usize, pt[p] as usize);
-                *r = dqb::relative(&dq[t * nk + k].0, &dq[th * nk + k].0);
-            });
-            let rel = &sc.rel;
-            let parts: Vec<[f64; 2]> = split_at_bounds(&mut sc.edge, &e_bounds)
+            let parts: Vec<[f64; 2]> = split_at_bounds(&mut sc.nonkey, &pairs.group_u)
                 .into_par_iter()
-                .zip(split_at_bounds(&mut sc.nonkey, &u_bounds))
+                .zip(split_at_bounds(&mut sc.g_w, &pairs.group_e))
+                .zip(split_at_bounds(&mut sc.pair, &pairs.group_p))
                 .enumerate()
-                .map(|(c, (edges, nonkeys))| {
-                    let chunk = Chunk { range: u_bounds[c]..u_bounds[c + 1], edges, nonkeys };
-                    self.dqb_nonkeys(poses, t, rel, norm, chunk)
+                .map(|(g, ((nonkeys, g_w), pair))| {
+                    let group = Group { g, nonkeys, g_w, pairs: pair };
+                    self.dqb_group(poses, t, dq, norm, group)
                 })
                 .collect();
             for p in parts {
@@ -275,39 +275,21 @@ impl GraphObjective {
                     }
                 }
             }
-            // each pair's cotangent: the sum of its edges', then through the relative transform
-            let edge = &sc.edge;
-            let (po, pe) = (&self.pairs.off, &self.pairs.edges);
-            sc.pair_g_dst.par_iter_mut().zip(sc.pair_g_src.par_iter_mut()).enumerate().for_each(
-                |(p, (gd, gs))| {
-                    let mut g = [0.0; 8];
-                    for &e in &pe[po[p]..po[p + 1]] {
-                        for c in 0..8 {
-                            g[c] += edge[e as usize].rel[c];
-                        }
-                    }
-                    let (k, th) = (pk[p] as usize, pt[p] as usize);
-                    let (d, s) =
-                        dqb::relative_vjp(&dq[t * nk + k].0, &dq[th * nk + k].0, rel[p].1, &g);
-                    *gd = d;
-                    for c in 0..8 {
-                        gs[c] += s[c];
-                    }
-                },
-            );
-            let (kpo, gdst) = (&self.pairs.key_off, &sc.pair_g_dst);
+            // each key's cotangent at t: its pairs' in pair order
+            let pc = &sc.pair;
             sc.g_dq[t * nk..(t + 1) * nk].par_iter_mut().enumerate().for_each(|(k, g)| {
-                for d in &gdst[kpo[k]..kpo[k + 1]] {
+                for &p in &pairs.key_pairs[pairs.key_off[k]..pairs.key_off[k + 1]] {
+                    let d = &pc[p as usize].g_dst;
                     for c in 0..8 {
                         g[c] += d[c];
                     }
                 }
             });
         }
-        for p in 0..np {
-            let x = self.pairs.t[p] as usize * nk + self.pairs.key[p] as usize;
+        for (p, pc) in sc.pair.iter().enumerate() {
+            let x = pairs.t[p] as usize * nk + pairs.key[p] as usize;
             for c in 0..8 {
-                sc.g_dq[x][c] += sc.pair_g_src[p][c];
+                sc.g_dq[x][c] += pc.g_src[c];
             }
         }
         for (u, c) in sc.nonkey.iter().enumerate() {
@@ -323,8 +305,6 @@ impl GraphObjective {
                 }
             }
         }
-        sc.g_w.clear();
-        sc.g_w.extend(sc.edge.iter().map(|e| e.w));
         self.blend_weights_vjp(&poses.position, &sc.g_w, &mut sc.weights, grads);
         // the keys' poses
         let (g_dq, dq, keys) = (&sc.g_dq, &sc.dq_key, &self.keys);
@@ -352,24 +332,32 @@ impl GraphObjective {
         [sums[0] * norm, sums[1] * norm]
     }
 
-    /// The DQB terms of the chunk's non-keys at frame `t` given the pairs' relative
-    /// transforms `rel` `[P]`: returns the chunk's (position, rotation) sums; writes each
-    /// edge's blend cotangent and adds its weight cotangent, and writes each non-key's pose
-    /// cotangent at t and adds its source-pose and offset ones.
-    fn dqb_nonkeys(
+    /// The DQB terms of one group's non-keys at frame `t` (key dual quaternions `dq`
+    /// `[T, K]`): its pairs' relative transforms, then per non-key the terms, its pose
+    /// cotangent at t (written) and its source-pose, offset and weight cotangents (added),
+    /// and its pairs' cotangents, then one VJP per pair (the cotangent of the key at t
+    /// written, at t̂ added). Returns the group's (position, rotation) sums.
+    fn dqb_group(
         &self,
         poses: &Poses,
         t: usize,
-        rel: &[(Dq, f64)],
+        dq: &[(Dq, f64)],
         norm: f64,
-        chunk: Chunk,
+        group: Group,
     ) -> [f64; 2] {
-        let Chunk { range, edges: ec, nonkeys: uc } = chunk;
+        let Group { g, nonkeys: uc, g_w, pairs: pc } = group;
+        let pairs = &self.pairs;
+        let nk = self.keys.len();
+        let (u0, e0, p0) = (pairs.group_u[g], pairs.group_e[g], pairs.group_p[g]);
+        for (lp, c) in pc.iter_mut().enumerate() {
+            let (k, th) = (pairs.key[p0 + lp] as usize, pairs.t[p0 + lp] as usize);
+            (c.rel, c.sign) = dqb::relative(&dq[t * nk + k].0, &dq[th * nk + k].0);
+            c.g = [0.0; 8];
+        }
         let s = &self.s;
         let (wp, wq) = (s.dqb * norm, s.dqb_rotation * norm);
-        let e0 = self.nk_off[range.start];
         let mut sums = [0.0; 2];
-        for (lu, u) in range.enumerate() {
+        for (lu, u) in (u0..pairs.group_u[g + 1]).enumerate() {
             let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
             if a == b {
                 continue;
@@ -378,7 +366,7 @@ impl GraphObjective {
             let w = &self.nk_w_eff[a..b];
             let mut blend = [0.0; 8];
             for e in a..b {
-                let r = &rel[self.pairs.of_edge[e] as usize].0;
+                let r = &pc[pairs.of_edge[e] as usize - p0].rel;
                 for c in 0..8 {
                     blend[c] += w[e - a] * r[c];
                 }
@@ -434,22 +422,32 @@ impl GraphObjective {
                 cot.offset[3 + c] += g_q[c];
             }
             for e in a..b {
-                let r = &rel[self.pairs.of_edge[e] as usize].0;
-                let cot = &mut ec[e - e0];
-                cot.rel = wg.blend.map(|v| w[e - a] * v);
-                cot.w += (0..8).map(|c| r[c] * wg.blend[c]).sum::<f64>();
+                let c = &mut pc[pairs.of_edge[e] as usize - p0];
+                g_w[e - e0] += (0..8).map(|k| c.rel[k] * wg.blend[k]).sum::<f64>();
+                for k in 0..8 {
+                    c.g[k] += w[e - a] * wg.blend[k];
+                }
+            }
+        }
+        for (lp, c) in pc.iter_mut().enumerate() {
+            let (k, th) = (pairs.key[p0 + lp] as usize, pairs.t[p0 + lp] as usize);
+            let (gd, gs) = dqb::relative_vjp(&dq[t * nk + k].0, &dq[th * nk + k].0, c.sign, &c.g);
+            c.g_dst = gd;
+            for k in 0..8 {
+                c.g_src[k] += gs[k];
             }
         }
         sums
     }
 }
 
-/// A chunk of non-keys of [`GraphObjective::dqb_terms`] with its own slices of the
-/// cotangents: `edges` of its non-keys' edges, `nonkeys` of its non-keys.
-struct Chunk<'a> {
-    range: std::ops::Range<usize>,
-    edges: &'a mut [EdgeCot],
+/// A group of non-keys sharing a t̂ in [`GraphObjective::dqb_terms`], with its own slices:
+/// `nonkeys` of its non-keys, `g_w` of their edges, `pairs` of its (key, t̂) pairs.
+struct Group<'a> {
+    g: usize,
     nonkeys: &'a mut [NonkeyCot],
+    g_w: &'a mut [f64],
+    pairs: &'a mut [PairCot],
 }
 
 /// ‖a − b‖² in f64.
@@ -468,13 +466,17 @@ fn split_at_bounds<'a, T>(mut v: &'a mut [T], bounds: &[usize]) -> Vec<&'a mut [
     out
 }
 
-/// The cotangents of one non-key edge in [`GraphObjective::dqb_terms`].
+/// One (key, t̂) pair in [`GraphObjective::dqb_terms`].
 #[derive(Debug, Clone, Copy, Default)]
-struct EdgeCot {
-    /// Of its key's relative transform at the current frame: w'_e · g_blend.
+struct PairCot {
+    /// The relative transform T_k(t) T_k(t̂)⁻¹ at the current frame t, and its sign.
     rel: Dq,
-    /// Of its blend weight w'_e, summed over the batch frames: Σ_t ⟨rel_e, g_blend⟩.
-    w: f64,
+    sign: f64,
+    /// Its cotangent at t: Σ over its edges of w'_e · g_blend.
+    g: Dq,
+    /// The cotangent of the key's dual quaternion at t, and at t̂ summed over the frames.
+    g_dst: Dq,
+    g_src: Dq,
 }
 
 /// The cotangents of one non-key in [`GraphObjective::dqb_terms`].
@@ -488,7 +490,7 @@ struct NonkeyCot {
     offset: [f64; 7],
 }
 
-/// Buffers of the blend weights' forward and backward passes, `[E_n]` each.
+/// Buffers of the blend weights' forward and backward passes, `[E_n]` each but `tmp`.
 #[derive(Debug, Default)]
 struct WeightScratch {
     l: Vec<f64>,
@@ -498,6 +500,8 @@ struct WeightScratch {
     g_theta: Vec<f64>,
     g_dw: Vec<f64>,
     tmp: Vec<f64>,
+    /// The cotangent of θ `[K]`.
+    g_theta_key: Vec<f64>,
 }
 
 /// Buffers of [`GraphObjective::dqb_terms`], kept across steps.
@@ -508,14 +512,9 @@ pub(super) struct DqbScratch {
     dq_key: Vec<(Dq, f64)>,
     g_dq: Vec<Dq>,
     key_grad: Vec<([f64; 4], [f64; 3])>,
-    /// Per (key, t̂) pair `[P]`: the relative transform at the current frame with its sign,
-    /// the cotangent of the key's dual quaternion at that frame, and that of t̂ summed over
-    /// the batch frames.
-    rel: Vec<(Dq, f64)>,
-    pair_g_dst: Vec<Dq>,
-    pair_g_src: Vec<Dq>,
-    /// Per non-key edge `[E_n]` and per non-key `[nu]`.
-    edge: Vec<EdgeCot>,
+    /// Per (key, t̂) pair `[P]`, per non-key edge (the cotangent of w', summed over the
+    /// frames) `[E_n]`, per non-key `[nu]`.
+    pair: Vec<PairCot>,
     g_w: Vec<f64>,
     nonkey: Vec<NonkeyCot>,
     weights: WeightScratch,
