@@ -57,7 +57,9 @@ pub fn batch_frames(seed: u64, step: u32, frames: usize, batch: usize) -> Vec<us
 struct GraphInputs {
     keys: KeyNodes,
     edges: Edges,
-    /// λ / unit² of the edges table's non-key weights (its graph metadata), if it has them.
+    /// The edges table's graph metadata (kept in the learned table) and the λ / unit² of its
+    /// non-key weights, if it has them.
+    metadata: Option<String>,
     nonkey_lambda: Option<f64>,
 }
 
@@ -80,7 +82,7 @@ fn read_graph(p: &OptimizeParams, s: &OptimizeSettings) -> anyhow::Result<Option
         ),
         (Some(Err(e)), NonkeyWeights::Current) => anyhow::bail!("{}: {e}", path.display()),
     };
-    Ok(Some(GraphInputs { keys, edges, nonkey_lambda }))
+    Ok(Some(GraphInputs { keys, edges, metadata: meta, nonkey_lambda }))
 }
 
 /// The recipe's non-image terms.
@@ -495,6 +497,10 @@ fn write_outputs(
             &keys,
             &prov,
         )?;
+        let prov = match &g.metadata {
+            Some(m) => prov.with_metadata(crate::stages::edges::GRAPH_KEY, m),
+            None => prov,
+        };
         tables::edges::write(&p.out.join(tables::edges::EdgesTable::file_name()), edges, &prov)?;
     }
     Ok(())
