@@ -1227,6 +1227,27 @@ mod tests {
     }
 
     #[test]
+    fn graph_terms_do_not_depend_on_the_thread_count() {
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let (mut obj, poses) = case(GraphSettings::defaults(Profile::Release));
+                let mut g = PoseGrads::zeros(poses.frames, poses.n);
+                let terms =
+                    obj.evaluate(&poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default());
+                let bits = |v: &mut dyn Iterator<Item = f32>| v.map(f32::to_bits).collect();
+                let pose: Vec<u32> = bits(
+                    &mut g.position.iter().flatten().chain(g.rotation.iter().flatten()).copied(),
+                );
+                let own: Vec<u32> =
+                    bits(&mut obj.params_mut().iter().flat_map(|p| p.grads.to_vec()));
+                (terms.iter().map(|t| t.1.to_bits()).collect::<Vec<_>>(), pose, own)
+            })
+        };
+        assert_eq!(run(1), run(3));
+    }
+
+    #[test]
     fn learned_edges_are_normalised_per_source() {
         let (obj, _) = case(GraphSettings::defaults(Profile::Release));
         let edges = obj.learned_edges();
