@@ -194,11 +194,9 @@ impl GraphObjective {
         }
     }
 
-    /// The DQB position and rotation terms (unweighted) over non-keys and the batch frames.
-    /// Frame by frame: each (key, t̂) pair's relative transform (parallel over pairs), the
-    /// non-keys (parallel over fixed chunks, each writing its own slices), then the pairs'
-    /// cotangents (parallel over pairs and keys, each summing its edges in a fixed order), so
-    /// the result does not depend on the number of threads. Scratch is kept across steps.
+    /// The DQB position and rotation terms (unweighted) over non-keys and the batch frames,
+    /// computed as the module doc says; adds the gradients of the poses, source poses, θ, Δw
+    /// and pose offsets.
     pub(super) fn dqb_terms(
         &mut self,
         poses: &Poses,
