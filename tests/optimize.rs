@@ -209,6 +209,36 @@ fn usplat4d_recipe_writes_a_model_its_roles_and_the_learned_graph() {
     args.push("--no-loss-weighting".into());
     let a: Vec<&str> = args.iter().map(String::as_str).collect();
     dir.ok(&a);
+    // the release's non-key weights need the edges stage's λ and distance unit: the learned
+    // graph keeps them, a table without them is an error naming it
+    let meta = |path: &str| {
+        usplat4d::tables::io::TableReader::open::<usplat4d::tables::edges::EdgesTable>(
+            &dir.join(path),
+        )
+        .unwrap()
+        .metadata_value(usplat4d::stages::edges::GRAPH_KEY)
+    };
+    assert_eq!(meta("O_release/edges.parquet"), meta("E_release/edges.parquet"));
+    let edges = usplat4d::tables::edges::read(&dir.join("E_release/edges.parquet")).unwrap();
+    std::fs::create_dir_all(dir.join("E_bare")).unwrap();
+    let bare = dir.join("E_bare/edges.parquet");
+    usplat4d::tables::edges::write(&bare, &edges, &Provenance::default()).unwrap();
+    let mut args: Vec<String> =
+        ["optimize", "--model", "S/oracle", "--scene", "S", "--out", "B", "--steps", "1"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+    args.extend(usplat4d_args("release"));
+    *args.last_mut().unwrap() = "E_bare".into();
+    let a: Vec<&str> = args.iter().map(String::as_str).collect();
+    let err = dir.fails(&a, 2);
+    assert!(
+        err.contains(&format!(
+            "{}: no 'usplat4d.graph' metadata (non-key weight sharpness and distance unit)",
+            std::path::Path::new("E_bare").join("edges.parquet").display()
+        )),
+        "{err}"
+    );
 }
 
 /// Distance to the oracle of each (Gaussian, frame) pair of `pairs`, by id (`None` when the

@@ -193,13 +193,7 @@ pub struct Warped {
 /// renormalised here), make the sum a unit dual quaternion and apply it to the source pose
 /// (`src_p`, unnormalised `src_q`): MoSca's `__DQB_warp__` body after `Rt2dq`.
 pub fn warp(rel: &[Dq], w: &[f64], src_p: V3, src_q: Q) -> Warped {
-    let b = blend(rel, w);
-    let ub = unit(&b);
-    let (r, t) = to_rt(&ub);
-    let mp = q4::mat_vec(&r, src_p);
-    let (sq, _) = q4::normalize(src_q);
-    let (pb, _) = q4::normalize(real(&ub));
-    Warped { p: [mp[0] + t[0], mp[1] + t[1], mp[2] + t[2]], q: q4::standardize(q4::mul(pb, sq)) }
+    Warp::new(&blend(rel, w), src_p, src_q).out
 }
 
 /// `Σ_k w_k rel_k`.
@@ -228,24 +222,62 @@ pub struct WarpGrad {
 
 /// VJP of [`warp`] for the output cotangents `g_p`, `g_q`.
 pub fn warp_vjp(rel: &[Dq], w: &[f64], src_p: V3, src_q: Q, g_p: V3, g_q: Q) -> WarpGrad {
-    let b = blend(rel, w);
-    let ub = unit(&b);
-    let (r, _) = to_rt(&ub);
-    let (sq, sn) = q4::normalize(src_q);
-    let (pb, pn) = q4::normalize(real(&ub));
-    let prod = q4::mul(pb, sq);
-    let sign = if prod[0] < 0.0 { -1.0 } else { 1.0 };
-    let g_prod = g_q.map(|v| sign * v);
-    let (g_pb, g_sq) = q4::mul_vjp(pb, sq, g_prod);
-    let mut g_r = [[0.0; 3]; 3];
-    q4::add_outer(&mut g_r, g_p, src_p);
-    let g_src_p = q4::mat_t_vec(&r, g_p);
-    let mut g_ub = to_rt_vjp(&ub, &g_r, g_p);
-    let g_pr = q4::normalize_vjp(pb, pn, g_pb);
-    for k in 0..4 {
-        g_ub[k] += g_pr[k];
+    Warp::new(&blend(rel, w), src_p, src_q).vjp(g_p, g_q)
+}
+
+/// One warp of a source pose by a blended dual quaternion, keeping what its VJP reuses, so a
+/// loss computes the forward pass once: [`Warp::new`] then [`Warp::vjp`].
+#[derive(Debug, Clone, Copy)]
+pub struct Warp {
+    /// The output.
+    pub out: Warped,
+    b: Dq,
+    ub: Dq,
+    r: M3,
+    src_p: V3,
+    sq: Q,
+    sn: f64,
+    pb: Q,
+    pn: f64,
+}
+
+impl Warp {
+    /// Warp (`src_p`, unnormalised `src_q`) by the blend `b` (see [`warp`]).
+    #[inline]
+    pub fn new(b: &Dq, src_p: V3, src_q: Q) -> Self {
+        let ub = unit(b);
+        let (r, t) = to_rt(&ub);
+        let mp = q4::mat_vec(&r, src_p);
+        let (sq, sn) = q4::normalize(src_q);
+        let (pb, pn) = q4::normalize(real(&ub));
+        let out = Warped {
+            p: [mp[0] + t[0], mp[1] + t[1], mp[2] + t[2]],
+            q: q4::standardize(q4::mul(pb, sq)),
+        };
+        Warp { out, b: *b, ub, r, src_p, sq, sn, pb, pn }
     }
-    WarpGrad { blend: unit_vjp(&b, &g_ub), src_p: g_src_p, src_q: q4::normalize_vjp(sq, sn, g_sq) }
+
+    /// VJP for the output cotangents `g_p`, `g_q`.
+    #[inline]
+    pub fn vjp(&self, g_p: V3, g_q: Q) -> WarpGrad {
+        let prod = q4::mul(self.pb, self.sq);
+        let sign = if prod[0] < 0.0 { -1.0 } else { 1.0 };
+        let g_prod = g_q.map(|v| sign * v);
+        let (g_pb, g_sq) = q4::mul_vjp(self.pb, self.sq, g_prod);
+        let mut g_r = [[0.0; 3]; 3];
+        q4::add_outer(&mut g_r, g_p, self.src_p);
+        let g_src_p = q4::mat_t_vec(&self.r, g_p);
+        let mut g_ub = to_rt_vjp(&self.ub, &g_r, g_p);
+        let g_pr = q4::normalize_vjp(self.pb, self.pn, g_pb);
+        for k in 0..4 {
+            g_ub[k] += g_pr[k];
+        }
+        WarpGrad {
+            blend: unit_vjp(&self.b, &g_ub),
+            src_p: g_src_p,
+            src_q: q4::normalize_vjp(self.sq, self.sn, g_sq),
+        }
+    }
 }
 
 #[cfg(test)]

@@ -23,6 +23,8 @@ pub const LOSS_TERMS: &[&str] = &[
     "nonkey_anchor",
     "nonkey_dqb",
     "nonkey_dqb_rotation",
+    "nonkey_dweight",
+    "nonkey_offset",
     "key_isometry",
     "key_rigidity",
     "key_rotation",
@@ -43,7 +45,8 @@ pub struct TrainingLogTable;
 
 impl Table for TrainingLogTable {
     const NAME: &'static str = "training_log";
-    const VERSION: u32 = 1;
+    /// 2: `loss_nonkey_dweight`, `loss_nonkey_offset`.
+    const VERSION: u32 = 2;
     fn schema() -> SchemaRef {
         let mut f: Vec<Field> = vec![
             field("step", DataType::UInt32),

@@ -5,9 +5,15 @@
 //!   [`AnchorMetric`] built from u_{i,t} and the training camera of frame t (Eq. 6).
 //! - DQB term Σ_{t ∈ batch} Σ_{u ∈ non-keys} ‖p_{u,t} − p^DQB_{u,t}‖ (Eq. 10-11): DQB of the
 //!   non-key's keys' motions from its most reliable frame t̂_u to t ([`crate::math::dqb`]),
-//!   table weights (normalised per non-key), applied to a trainable source pose (release
-//!   `src_xyz_1`, `src_xyzw_1`, initialised from p°_{u,t̂}); gradients reach the key
-//!   trajectories at t and t̂. The release adds ‖q^DQB − q_{u,t}‖ on unit quaternions.
+//!   with the blend weights of [`super::nonkey_weights`] (trainable per-key sharpness θ and
+//!   per-edge offsets Δw over the table's weights or the current distances at t̂_u),
+//!   applied to a trainable source pose (release `src_xyz_1`, `src_xyzw_1`, initialised from
+//!   p°_{u,t̂}), plus, as a setting, the release's trainable per-non-key offsets `[nu, 7]`
+//!   added to (p^DQB, q^DQB) (`per_nonkeyGaussian_dxyz_dxyzw`); gradients reach the key
+//!   trajectories at t and t̂. The release adds ‖q^DQB − q_{u,t}‖ on unit quaternions and the
+//!   L2 penalties mean(Δw²) and mean(offset²). Each key's relative transform
+//!   T_k(t) T_k(t̂)⁻¹ is computed once per (key, t̂, batch frame) and shared by the non-keys
+//!   that use it.
 //! - Key motion losses over key-key edges ([`super::motion`]): the paper's iso + rigid +
 //!   0.01·rot (Δ = 1, normalised by 1/E, summed over frames), or the release's L_rigid_extra
 //!   (edges with w > 1e-4, a seeded 80 % kept per step; rigid + rot + 100·iso + 100·rigid_Δ50 +
@@ -17,8 +23,8 @@
 //!   keeps D_ij = ‖p°_j − p°_i‖ at the canonical frame fixed.
 //! - Velocity and acceleration over keys and non-keys ([`MotionForm`]).
 //!
-//! Memory: O(T·(keys + non-keys)) plus O(T·keys) dual quaternions; nothing of size
-//! keys × non-keys × frames.
+//! Memory: O(T·(keys + non-keys)) plus O(T·keys) dual quaternions and O(non-key edges)
+//! scratch; nothing of size keys × non-keys × frames.
 
 use std::collections::HashMap;
 
@@ -26,14 +32,17 @@ use glam::DMat3;
 use rayon::prelude::*;
 
 use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
+use super::nonkey_weights::NonkeyWeights;
 use super::poses::{PoseGrads, Poses};
 use super::smoothness;
 use super::timing::PhaseTimes;
-use crate::math::dqb::{self, Dq};
 use crate::math::quat64::{self as q4, M3, V3};
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
 use crate::util::rng::rank_key;
+use dqb_term::{DqbScratch, Pairs};
+
+mod dqb_term;
 
 mod init;
 pub use init::{GraphInit, InitReport};
@@ -100,6 +109,14 @@ pub struct GraphSettings {
     pub canonical_frame: usize,
     /// The graph initialisation before fine-tuning ([`GraphInit`]).
     pub init: GraphInit,
+    /// Log-base of the non-key blend weights before θ and Δw (row 32).
+    pub nonkey_weights: NonkeyWeights,
+    /// Weight of mean(Δw²) (release λ_graph · 1e-5; row 42).
+    pub nonkey_dweight_l2: f64,
+    /// Whether trainable per-non-key offsets `[nu, 7]` are added to (p^DQB, q^DQB) (row 36).
+    pub nonkey_pose_offsets: bool,
+    /// Weight of mean(offset²) (release λ_graph · 1e-3; row 42).
+    pub nonkey_offset_l2: f64,
 }
 
 impl GraphSettings {
@@ -128,6 +145,10 @@ impl GraphSettings {
                 batch_frames: 30,
                 acceleration: 0.1,
             },
+            nonkey_weights: if paper { NonkeyWeights::Table } else { NonkeyWeights::Current },
+            nonkey_dweight_l2: if paper { 1e-5 } else { 2e-5 },
+            nonkey_pose_offsets: !paper,
+            nonkey_offset_l2: if paper { 1e-3 } else { 2e-3 },
         }
     }
 }
@@ -152,7 +173,10 @@ pub struct GraphObjective {
     n: usize,
     ids: Vec<u32>,
     keys: Vec<u32>,
+    /// Non-key pose indices, ordered by t̂ (stable), and the position there of each non-key
+    /// of the inputs.
     nonkeys: Vec<u32>,
+    nk_order: Vec<u32>,
     /// Key-key edges, compact indices into `keys`, grouped by source.
     ksrc: Vec<u32>,
     kdst: Vec<u32>,
@@ -161,16 +185,32 @@ pub struct GraphObjective {
     rest: Vec<f32>,
     g_w_raw: Vec<f32>,
     g_rest: Vec<f32>,
-    /// Non-key → key edges, CSR over `nonkeys`: `nk_off[u]..nk_off[u+1]`, compact key index.
+    /// Non-key → key edges, CSR over `nonkeys`: `nk_off[u]..nk_off[u+1]`, compact key index,
+    /// the table's normalised weight `[E_n]`.
     nk_off: Vec<usize>,
     nk_key: Vec<u32>,
     nk_w: Vec<f64>,
     t_hat: Vec<u32>,
+    /// λ / unit² of [`NonkeyWeights::Current`].
+    nk_lambda: f64,
+    /// The distinct (key, t̂) pairs of the non-key edges.
+    pairs: Pairs,
     /// Trainable source poses `[nu, 3]`, `[nu, 4]`.
     src_p: Vec<f32>,
     src_q: Vec<f32>,
     g_src_p: Vec<f32>,
     g_src_q: Vec<f32>,
+    /// Trainable sharpness θ `[K]` (init 1), weight offsets Δw `[E_n]` (init 0) and, with
+    /// `nonkey_pose_offsets`, pose offsets `[nu, 7]` (Δp xyz, Δq wxyz; init 0, else empty).
+    theta: Vec<f32>,
+    dw: Vec<f32>,
+    offsets: Vec<f32>,
+    g_theta: Vec<f32>,
+    g_dw: Vec<f32>,
+    g_offsets: Vec<f32>,
+    /// The blend weights w' of the last evaluation (at construction: of p°) `[E_n]`.
+    nk_w_eff: Vec<f64>,
+    scratch: DqbScratch,
     /// p° `[T, N]`, u `[T, N]`, R_cw `[T]`.
     p0: Vec<[f32; 3]>,
     u: Vec<f32>,
@@ -194,10 +234,23 @@ pub struct GraphInputs<'a> {
     pub nonkey_edges: &'a [Vec<(u32, f32)>],
     /// Key-key edges `(src pose index, dst pose index, weight)`, grouped by source.
     pub key_edges: &'a [(u32, u32, f32)],
+    /// λ / unit² of [`NonkeyWeights::Current`] (the edges table's `nonkey-weight-sharpness`
+    /// over its `nonkey-distance-unit`²); unused by [`NonkeyWeights::Table`].
+    pub nonkey_lambda: f64,
     /// u_{t,i} `[T, N]`.
     pub u: &'a [f32],
     /// World-to-camera rotation R_cw of each frame's training camera `[T]`.
     pub rot_cw: &'a [DMat3],
+}
+
+/// The graph tables [`GraphObjective::from_tables`] reads.
+pub struct GraphTables<'a> {
+    /// The key-node table.
+    pub key_nodes: &'a KeyNodes,
+    /// The edges table.
+    pub edges: &'a Edges,
+    /// λ / unit² of the edges table's non-key weights ([`GraphInputs::nonkey_lambda`]).
+    pub nonkey_lambda: f64,
 }
 
 impl GraphObjective {
@@ -241,7 +294,11 @@ impl GraphObjective {
         }
         let (mut nk_off, mut nk_key, mut nk_w) = (vec![0], vec![], vec![]);
         let (mut src_p, mut src_q) = (Vec::with_capacity(3 * nu), Vec::with_capacity(4 * nu));
-        for (u, list) in inp.nonkey_edges.iter().enumerate() {
+        // the non-keys ordered by t̂ (stable), for the DQB term's groups
+        let mut order: Vec<usize> = (0..nu).collect();
+        order.sort_by_key(|&u| inp.t_hat[u]);
+        for &u in &order {
+            let list = &inp.nonkey_edges[u];
             let sum: f64 = list.iter().map(|e| e.1 as f64).sum();
             for &(k, w) in list {
                 nk_key.push(compact(k)?);
@@ -256,12 +313,24 @@ impl GraphObjective {
             src_q.extend(inp.initial.q(th, inp.nonkeys[u] as usize));
         }
         let ne = ksrc.len();
-        Ok(GraphObjective {
+        let lambda = inp.nonkey_lambda;
+        if s.nonkey_weights == NonkeyWeights::Current && !(lambda.is_finite() && lambda > 0.0) {
+            return Err(format!("non-key weights from distances need λ > 0, got {lambda}"));
+        }
+        let t_hat: Vec<u32> = order.iter().map(|&u| inp.t_hat[u]).collect();
+        let pairs = Pairs::new(&nk_off, &nk_key, &t_hat, inp.keys.len());
+        let mut nk_order = vec![0u32; nu];
+        for (v, &u) in order.iter().enumerate() {
+            nk_order[u] = v as u32;
+        }
+        let n_edges = nk_key.len();
+        let mut obj = GraphObjective {
             frames: t,
             n,
             ids: inp.ids.to_vec(),
             keys: inp.keys.to_vec(),
-            nonkeys: inp.nonkeys.to_vec(),
+            nonkeys: order.iter().map(|&u| inp.nonkeys[u]).collect(),
+            nk_order,
             ksrc,
             kdst,
             g_w_raw: vec![0.0; ne],
@@ -271,11 +340,21 @@ impl GraphObjective {
             nk_off,
             nk_key,
             nk_w,
-            t_hat: inp.t_hat.to_vec(),
+            t_hat,
+            nk_lambda: inp.nonkey_lambda,
+            pairs,
             g_src_p: vec![0.0; src_p.len()],
             g_src_q: vec![0.0; src_q.len()],
             src_p,
             src_q,
+            theta: vec![1.0; inp.keys.len()],
+            dw: vec![0.0; n_edges],
+            offsets: vec![0.0; if s.nonkey_pose_offsets { 7 * nu } else { 0 }],
+            g_theta: vec![0.0; inp.keys.len()],
+            g_dw: vec![0.0; n_edges],
+            g_offsets: vec![0.0; if s.nonkey_pose_offsets { 7 * nu } else { 0 }],
+            nk_w_eff: vec![0.0; n_edges],
+            scratch: DqbScratch::default(),
             p0: inp.initial.position.clone(),
             u: inp.u.to_vec(),
             rot: inp
@@ -287,22 +366,24 @@ impl GraphObjective {
                 })
                 .collect(),
             s,
-        })
+        };
+        obj.blend_weights_of(&inp.initial.position);
+        Ok(obj)
     }
 
     /// Build from the tables: `initial` poses and their `ids` (pose index order), the
-    /// key-node table, the edges table, u `[T, N]` in pose order (φ where unmeasured) and
+    /// key-node and edges tables, u `[T, N]` in pose order (φ where unmeasured) and
     /// the training cameras' R_cw `[T]`. Gaussians of the tables that are not in `ids` are
     /// an error; `unlinked`/`culled` roles get no graph terms.
     pub fn from_tables(
         initial: &Poses,
         ids: &[u32],
-        key_nodes: &KeyNodes,
-        edges: &Edges,
+        tables: GraphTables,
         u: &[f32],
         rot_cw: &[DMat3],
         s: GraphSettings,
     ) -> Result<Self, String> {
+        let GraphTables { key_nodes, edges, nonkey_lambda } = tables;
         let index: HashMap<u32, u32> =
             ids.iter().enumerate().map(|(i, &id)| (id, i as u32)).collect();
         let pose = |id: u32, what: &str| {
@@ -349,6 +430,7 @@ impl GraphObjective {
             key_edges: &key_edges,
             u,
             rot_cw,
+            nonkey_lambda,
         };
         Self::new(&inp, s)
     }
@@ -379,7 +461,27 @@ impl GraphObjective {
                 grads: &self.g_w_raw,
                 lr_key: "graph",
             },
+            ParamSlice {
+                name: "weight_param_key",
+                values: &mut self.theta,
+                grads: &self.g_theta,
+                lr_key: "graph",
+            },
+            ParamSlice {
+                name: "per_nonkeyGaussian_dweight_nonkey",
+                values: &mut self.dw,
+                grads: &self.g_dw,
+                lr_key: "graph",
+            },
         ];
+        if self.s.nonkey_pose_offsets {
+            out.push(ParamSlice {
+                name: "per_nonkeyGaussian_dxyz_dxyzw",
+                values: &mut self.offsets,
+                grads: &self.g_offsets,
+                lr_key: "graph",
+            });
+        }
         if self.s.motion == MotionForm::Release {
             out.push(ParamSlice {
                 name: "dists_key",
@@ -405,7 +507,7 @@ impl GraphObjective {
 
     /// The learned graph as an edges table: key-key edges with the current w_ij and learned
     /// canonical length D_ij (release form; the paper form's fixed lengths are not learned
-    /// and left out), nonkey-key edges with their fixed normalised weights.
+    /// and left out), nonkey-key edges with the blend weights w' of the last evaluation.
     pub fn learned_edges(&self) -> Edges {
         let mut out = Edges::default();
         let w = self.key_weights();
@@ -416,21 +518,23 @@ impl GraphObjective {
             let d = learned.then_some(self.rest[e]);
             out.push_trained(id(a), id(b), EdgeKind::KeyKey, w[e] as f32, d);
         }
-        for (u, &nk) in self.nonkeys.iter().enumerate() {
+        for &u in &self.nk_order {
+            let (u, nk) = (u as usize, self.nonkeys[u as usize]);
             for e in self.nk_off[u]..self.nk_off[u + 1] {
                 let key = self.keys[self.nk_key[e] as usize];
-                out.push(id(nk), id(key), EdgeKind::NonkeyKey, self.nk_w[e] as f32);
+                out.push(id(nk), id(key), EdgeKind::NonkeyKey, self.nk_w_eff[e] as f32);
             }
         }
         out
     }
 
     /// Take over the trained tensors of `old` (the objective before a density pass): the
-    /// key-key rest lengths by (source, destination) id, and each non-key's source pose by
-    /// its id, or, for a Gaussian that density control created, by the id of the input
-    /// Gaussian it descends from (`origin`; the release's `densify_params` copies the
-    /// parent's). The
-    /// key-key weights come in through the learned edges the objective was built from.
+    /// key-key rest lengths by (source, destination) id, θ by key id, and each non-key's
+    /// source pose, Δw, pose offsets and table weights (the base of θ and Δw, not the
+    /// learned w' the rebuilt objective was built from) by its id, or, for a Gaussian that
+    /// density control created, by the id of the input Gaussian it descends from (`origin`;
+    /// the release's `densify_params` copies the parent's). The key-key weights come in
+    /// through the learned edges the objective was built from.
     pub fn carry_over(&mut self, old: &GraphObjective, origin: impl Fn(u32) -> u32) {
         let key_id = |o: &GraphObjective, k: u32| o.ids[o.keys[k as usize] as usize];
         let rest: HashMap<(u32, u32), f32> = (0..old.ksrc.len())
@@ -442,6 +546,13 @@ impl GraphObjective {
                 self.rest[e] = d;
             }
         }
+        let theta: HashMap<u32, f32> =
+            (0..old.keys.len()).map(|k| (key_id(old, k as u32), old.theta[k])).collect();
+        for k in 0..self.keys.len() {
+            if let Some(&th) = theta.get(&key_id(self, k as u32)) {
+                self.theta[k] = th;
+            }
+        }
         let src: HashMap<u32, usize> =
             old.nonkeys.iter().enumerate().map(|(u, &i)| (old.ids[i as usize], u)).collect();
         for (u, &i) in self.nonkeys.iter().enumerate() {
@@ -449,6 +560,17 @@ impl GraphObjective {
             let Some(&v) = src.get(&id).or_else(|| src.get(&origin(id))) else { continue };
             self.src_p[3 * u..3 * u + 3].copy_from_slice(&old.src_p[3 * v..3 * v + 3]);
             self.src_q[4 * u..4 * u + 4].copy_from_slice(&old.src_q[4 * v..4 * v + 4]);
+            if !self.offsets.is_empty() && !old.offsets.is_empty() {
+                self.offsets[7 * u..7 * u + 7].copy_from_slice(&old.offsets[7 * v..7 * v + 7]);
+            }
+            let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
+            let (c, d) = (old.nk_off[v], old.nk_off[v + 1]);
+            let same =
+                |e: usize| key_id(self, self.nk_key[e]) == key_id(old, old.nk_key[c + e - a]);
+            if b - a == d - c && (a..b).all(same) {
+                self.dw[a..b].copy_from_slice(&old.dw[c..d]);
+                self.nk_w[a..b].copy_from_slice(&old.nk_w[c..d]);
+            }
         }
     }
 
@@ -591,15 +713,23 @@ impl GraphObjective {
         self.g_rest.fill(0.0);
         self.g_src_p.fill(0.0);
         self.g_src_q.fill(0.0);
+        self.g_theta.fill(0.0);
+        self.g_dw.fill(0.0);
+        self.g_offsets.fill(0.0);
         let mut out = Vec::new();
         let s = self.s.clone();
         let [ka, na] = timer
             .time("graph anchors", || self.anchors(poses, [s.key_anchor, s.nonkey_anchor], grads));
         out.push(("key_anchor", s.key_anchor * ka));
         out.push(("nonkey_anchor", s.nonkey_anchor * na));
-        let (dp, dq) = timer.time("graph DQB", || self.dqb_terms(poses, frames, grads));
+        let [dp, dq] = timer.time("graph DQB", || self.dqb_terms(poses, frames, grads));
         out.push(("nonkey_dqb", s.dqb * dp));
         out.push(("nonkey_dqb_rotation", s.dqb_rotation * dq));
+        let [dw, off] = self.offset_penalties();
+        out.push(("nonkey_dweight", s.nonkey_dweight_l2 * dw));
+        if s.nonkey_pose_offsets {
+            out.push(("nonkey_offset", s.nonkey_offset_l2 * off));
+        }
         let key = timer.time("graph key motion", || self.key_motion(poses, rng_seed, grads));
         out.extend(key);
         // Smoothness over keys and non-keys.
@@ -740,201 +870,25 @@ impl GraphObjective {
         }
         out
     }
-
-    /// The DQB position and rotation terms over non-keys and the batch frames. Parallel over
-    /// fixed chunks of non-keys (in waves, so memory stays O(chunk)); each chunk returns its
-    /// gradients and they are added in chunk order, so the result does not depend on the
-    /// number of threads.
-    fn dqb_terms(&mut self, poses: &Poses, frames: &[usize], grads: &mut PoseGrads) -> (f64, f64) {
-        const CHUNK: usize = 256;
-        const WAVE: usize = 16;
-        let s = &self.s;
-        if (s.dqb == 0.0 && s.dqb_rotation == 0.0) || self.nonkeys.is_empty() {
-            return (0.0, 0.0);
-        }
-        let nk = self.keys.len();
-        // Unit dual quaternions of the keys' poses at every frame `[T, K]`.
-        let dq_key: Vec<(Dq, f64)> = (0..self.frames * nk)
-            .into_par_iter()
-            .map(|x| {
-                let o = (x / nk) * self.n + self.keys[x % nk] as usize;
-                dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o]))
-            })
-            .collect();
-        let linked = (0..self.nonkeys.len()).filter(|&u| self.nk_off[u + 1] > self.nk_off[u]);
-        let norm = match s.reduction {
-            Reduction::Sum => 1.0,
-            Reduction::Mean => 1.0 / (linked.count() * frames.len()).max(1) as f64,
-        };
-        let mut g_dq = vec![[0.0f64; 8]; self.frames * nk];
-        let (mut sum_p, mut sum_q) = (0.0, 0.0);
-        let chunks: Vec<std::ops::Range<usize>> = (0..self.nonkeys.len())
-            .step_by(CHUNK)
-            .map(|a| a..(a + CHUNK).min(self.nonkeys.len()))
-            .collect();
-        for wave in chunks.chunks(WAVE) {
-            let parts: Vec<DqbPart> = wave
-                .par_iter()
-                .map(|r| self.dqb_chunk(poses, frames, &dq_key, norm, r.clone()))
-                .collect();
-            for (r, part) in wave.iter().zip(parts) {
-                sum_p += part.sum_p;
-                sum_q += part.sum_q;
-                for (o, gp, gq) in part.poses {
-                    for c in 0..3 {
-                        grads.position[o][c] += gp[c] as f32;
-                    }
-                    for c in 0..4 {
-                        grads.rotation[o][c] += gq[c] as f32;
-                    }
-                }
-                self.g_src_p[3 * r.start..3 * r.end].copy_from_slice(&part.src_p);
-                self.g_src_q[4 * r.start..4 * r.end].copy_from_slice(&part.src_q);
-                for (x, g) in part.dq {
-                    for c in 0..8 {
-                        g_dq[x][c] += g[c];
-                    }
-                }
-            }
-        }
-        let key_grads: Vec<Option<([f64; 4], [f64; 3])>> = (0..self.frames * nk)
-            .into_par_iter()
-            .map(|x| {
-                let g = &g_dq[x];
-                if g.iter().all(|v| *v == 0.0) {
-                    return None;
-                }
-                let o = (x / nk) * self.n + self.keys[x % nk] as usize;
-                let (d, qn) = &dq_key[x];
-                Some(dqb::from_pose_vjp(d, *qn, q4::v64(poses.position[o]), g))
-            })
-            .collect();
-        for (x, kg) in key_grads.into_iter().enumerate() {
-            let Some((gq, gp)) = kg else { continue };
-            let o = (x / nk) * self.n + self.keys[x % nk] as usize;
-            for c in 0..3 {
-                grads.position[o][c] += gp[c] as f32;
-            }
-            for c in 0..4 {
-                grads.rotation[o][c] += gq[c] as f32;
-            }
-        }
-        (sum_p * norm, sum_q * norm)
-    }
-
-    /// The DQB terms of the non-keys `range` at the batch `frames` (see [`Self::dqb_terms`]).
-    fn dqb_chunk(
-        &self,
-        poses: &Poses,
-        frames: &[usize],
-        dq_key: &[(Dq, f64)],
-        norm: f64,
-        range: std::ops::Range<usize>,
-    ) -> DqbPart {
-        let s = &self.s;
-        let nk = self.keys.len();
-        let (wp, wq) = (s.dqb * norm, s.dqb_rotation * norm);
-        let mut part = DqbPart {
-            sum_p: 0.0,
-            sum_q: 0.0,
-            poses: Vec::new(),
-            src_p: vec![0.0; 3 * range.len()],
-            src_q: vec![0.0; 4 * range.len()],
-            dq: Vec::new(),
-        };
-        let mut rel: Vec<Dq> = Vec::new();
-        let mut signs: Vec<f64> = Vec::new();
-        for (lu, u) in range.enumerate() {
-            let node = self.nonkeys[u];
-            let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
-            if a == b {
-                continue;
-            }
-            let th = self.t_hat[u] as usize;
-            let w = &self.nk_w[a..b];
-            let sp = [0, 1, 2].map(|c| self.src_p[3 * u + c] as f64);
-            let sq = [0, 1, 2, 3].map(|c| self.src_q[4 * u + c] as f64);
-            for &t in frames {
-                rel.clear();
-                signs.clear();
-                for e in a..b {
-                    let k = self.nk_key[e] as usize;
-                    let (r, sg) = dqb::relative(&dq_key[t * nk + k].0, &dq_key[th * nk + k].0);
-                    rel.push(r);
-                    signs.push(sg);
-                }
-                let out = dqb::warp(&rel, w, sp, sq);
-                let o = t * self.n + node as usize;
-                let x = [0, 1, 2].map(|c| poses.position[o][c] as f64 - out.p[c]);
-                let k = match s.anchor_metric {
-                    AnchorMetric::Release => Some([1.0; 3]),
-                    _ => self.metric(t, node as usize),
-                };
-                let (mut g_p, mut g_q) = ([0.0; 3], [0.0; 4]);
-                let (mut gp_own, mut gq_own) = ([0.0; 3], [0.0; 4]);
-                if let Some(k) = k {
-                    let (d, g) = self.distance(t, k, x);
-                    part.sum_p += d;
-                    g_p = g.map(|v| -wp * v);
-                    gp_own = g.map(|v| wp * v);
-                }
-                if s.dqb_rotation != 0.0 {
-                    let (qu, qn) = q4::normalize(q4::q64(poses.rotation[o]));
-                    let r = [0, 1, 2, 3].map(|c| out.q[c] - qu[c]);
-                    let len = q4::norm(r);
-                    part.sum_q += len;
-                    if len > 0.0 {
-                        g_q = r.map(|v| wq * v / len);
-                        gq_own = q4::normalize_vjp(qu, qn, g_q.map(|v| -v));
-                    }
-                }
-                part.poses.push((o, gp_own, gq_own));
-                let wg = dqb::warp_vjp(&rel, w, sp, sq, g_p, g_q);
-                for c in 0..3 {
-                    part.src_p[3 * lu + c] += wg.src_p[c] as f32;
-                }
-                for c in 0..4 {
-                    part.src_q[4 * lu + c] += wg.src_q[c] as f32;
-                }
-                for (j, e) in (a..b).enumerate() {
-                    let k = self.nk_key[e] as usize;
-                    let g_rel = wg.blend.map(|v| w[j] * v);
-                    let (gd, gs) = dqb::relative_vjp(
-                        &dq_key[t * nk + k].0,
-                        &dq_key[th * nk + k].0,
-                        signs[j],
-                        &g_rel,
-                    );
-                    part.dq.push((t * nk + k, gd));
-                    part.dq.push((th * nk + k, gs));
-                }
-            }
-        }
-        part
-    }
-}
-
-/// One chunk's share of [`GraphObjective::dqb_terms`].
-struct DqbPart {
-    sum_p: f64,
-    sum_q: f64,
-    /// (pose index, d/d position, d/d raw rotation) of the chunk's non-keys.
-    poses: Vec<(usize, [f64; 3], [f64; 4])>,
-    /// Gradients of the chunk's source poses.
-    src_p: Vec<f32>,
-    src_q: Vec<f32>,
-    /// (t·K + key, d/d unit dual quaternion) contributions.
-    dq: Vec<(usize, [f64; 8])>,
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::math::dqb::{self, Dq};
     use crate::math::quat64::tests::TestRng;
     use crate::stages::params::Profile;
 
-    /// T = 22 frames (so the release's Δ = 10 term is on), 3 keys and 4 non-keys.
+    /// T = 22 frames (so the release's Δ = 10 term is on), 3 keys and 4 non-keys, λ = 1.
     fn case(s: GraphSettings) -> (GraphObjective, Poses) {
+        case_weighted(s, &|_, _, _, _, w| w)
+    }
+
+    /// [`case`] with the table's non-key weights `weight(p°, non-key, t̂, key, default)`.
+    fn case_weighted(
+        s: GraphSettings,
+        weight: &dyn Fn(&Poses, u32, usize, u32, f32) -> f32,
+    ) -> (GraphObjective, Poses) {
         let (t, n) = (22, 7);
         let mut rng = TestRng(21);
         let mut p0 = Poses::identity(t, n);
@@ -948,12 +902,16 @@ mod tests {
             .iter()
             .flat_map(|&a| keys.iter().filter(move |&&b| b != a).map(move |&b| (a, b, 0.5)))
             .collect();
-        let nonkey_edges: Vec<Vec<(u32, f32)>> = vec![
-            vec![(0, 0.6), (2, 0.4)],
-            vec![(2, 1.0), (4, 1.0), (0, 0.5)],
-            vec![(4, 1.0)],
-            vec![],
-        ];
+        let t_hat = [3, 0, 7, 1];
+        let nonkey_edges: Vec<Vec<(u32, f32)>> =
+            [vec![(0, 0.6), (2, 0.4)], vec![(2, 1.0), (4, 1.0), (0, 0.5)], vec![(4, 1.0)], vec![]]
+                .into_iter()
+                .enumerate()
+                .map(|(u, list)| {
+                    let node = nonkeys[u];
+                    list.into_iter().map(|(k, w)| (k, weight(&p0, node, t_hat[u], k, w))).collect()
+                })
+                .collect();
         let u: Vec<f32> = (0..t * n).map(|_| (0.55 + 0.45 * rng.next()) as f32).collect();
         let rot: Vec<DMat3> = (0..t)
             .map(|f| DMat3::from_euler(glam::EulerRot::XYZ, 0.1 * f as f64, -0.7, 0.3))
@@ -964,11 +922,12 @@ mod tests {
             ids: &ids,
             keys: &keys,
             nonkeys: &nonkeys,
-            t_hat: &[3, 0, 7, 1],
+            t_hat: &t_hat.map(|t| t as u32),
             nonkey_edges: &nonkey_edges,
             key_edges: &key_edges,
             u: &u,
             rot_cw: &rot,
+            nonkey_lambda: 1.0,
         };
         let obj = GraphObjective::new(&inp, s).unwrap();
         // Move the poses away from p° (and the raw weights off uniform) so no term is at a kink.
@@ -1014,11 +973,30 @@ mod tests {
                     ..GraphSettings::defaults(Profile::Paper)
                 },
             ),
+            (
+                "paper-with-current-weights-and-offsets",
+                GraphSettings {
+                    nonkey_weights: NonkeyWeights::Current,
+                    nonkey_pose_offsets: true,
+                    ..GraphSettings::defaults(Profile::Paper)
+                },
+            ),
         ];
         for (name, s) in variants {
             let (mut obj, mut poses) = case(s);
             for k in 0..obj.w_raw.len() {
                 obj.w_raw[k] *= 1.0 + 0.3 * (k as f32 * 0.37).sin();
+            }
+            // θ, Δw and the pose offsets away from their initial values (Δw > 0 keeps the
+            // blend weights off the kink of |ŵ + Δw|)
+            for (k, x) in obj.theta.iter_mut().enumerate() {
+                *x = 1.0 + 0.3 * (k as f32 * 1.3).sin();
+            }
+            for (k, x) in obj.dw.iter_mut().enumerate() {
+                *x = 0.02 + 0.03 * (k as f32 * 0.7).sin().abs();
+            }
+            for (k, x) in obj.offsets.iter_mut().enumerate() {
+                *x = 0.05 * (k as f32 * 0.9).cos();
             }
             let mut g = PoseGrads::zeros(poses.frames, poses.n);
             let terms = obj.evaluate(&poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default());
@@ -1125,6 +1103,7 @@ mod tests {
                 key_edges: &key_edges,
                 u: &u,
                 rot_cw: &rot,
+                nonkey_lambda: 100.0,
             };
             let mut obj = GraphObjective::new(&inp, GraphSettings::defaults(profile)).unwrap();
             let mut g = PoseGrads::zeros(t, n);
@@ -1164,19 +1143,173 @@ mod tests {
     }
 
     #[test]
-    fn a_rebuilt_objective_keeps_the_trained_lengths_and_source_poses() {
+    fn a_rebuilt_objective_keeps_the_trained_lengths_sharpness_offsets_and_source_poses() {
         let (mut old, _) = case(GraphSettings::defaults(Profile::Release));
         old.rest.iter_mut().enumerate().for_each(|(e, d)| *d = 10.0 + e as f32);
         old.src_p.iter_mut().enumerate().for_each(|(k, x)| *x = -1.0 - k as f32);
         old.src_q.iter_mut().for_each(|x| *x = 0.5);
+        old.theta.iter_mut().enumerate().for_each(|(k, x)| *x = 2.0 + k as f32);
+        old.dw.iter_mut().enumerate().for_each(|(e, x)| *x = 0.1 * e as f32);
+        old.offsets.iter_mut().enumerate().for_each(|(k, x)| *x = 0.01 * k as f32);
+        old.nk_w.iter_mut().for_each(|x| *x = 0.25);
         let (mut new, _) = case(GraphSettings::defaults(Profile::Release));
         // the new objective's last non-key is Gaussian 200, created from 101
         new.ids[6] = 200;
         new.carry_over(&old, |id| if id == 200 { 101 } else { id });
         assert_eq!(new.rest, old.rest);
-        assert_eq!(new.src_p[..9], old.src_p[..9], "non-keys 101, 103, 105 keep theirs");
-        assert_eq!(new.src_p[9..], old.src_p[..3], "200 takes its origin's");
         assert!(new.src_q.iter().all(|&x| x == 0.5));
+        assert_eq!(new.theta, old.theta, "θ by key id");
+        let at = |o: &GraphObjective, id: u32| {
+            o.nonkeys.iter().position(|&i| o.ids[i as usize] == id).unwrap()
+        };
+        for (id, from) in [(101, 101), (103, 103), (105, 105), (200, 101)] {
+            let (u, v) = (at(&new, id), at(&old, from));
+            assert_eq!(new.src_p[3 * u..3 * u + 3], old.src_p[3 * v..3 * v + 3], "{id}");
+            assert_eq!(new.offsets[7 * u..7 * u + 7], old.offsets[7 * v..7 * v + 7], "{id}");
+            // 200 has no edges (it is the case's edgeless non-key), 101-105 keep their Δw
+            let (a, b) = (new.nk_off[u], new.nk_off[u + 1]);
+            if id != 200 {
+                assert_eq!(new.dw[a..b], old.dw[old.nk_off[v]..old.nk_off[v + 1]], "{id}");
+            }
+        }
+        assert!(new.nk_w.iter().all(|&w| w == 0.25), "the table weights, the base of θ and Δw");
+    }
+
+    /// The DQB terms with only them on, Euclidean, summed: (position, rotation).
+    fn dqb_only(s: GraphSettings) -> GraphSettings {
+        GraphSettings {
+            anchor_metric: AnchorMetric::Euclidean,
+            reduction: Reduction::Sum,
+            key_anchor: 0.0,
+            nonkey_anchor: 0.0,
+            dqb: 1.0,
+            dqb_rotation: 1.0,
+            key_motion: 0.0,
+            lambda_vel_acc: [0.0; 2],
+            ..s
+        }
+    }
+
+    /// The DQB terms on `poses` as computed before θ, Δw and the pose offsets existed: per
+    /// non-key and frame, each edge's own relative transform, the given weights `w` `[E_n]`
+    /// (normalised per non-key), [`dqb::warp`], Euclidean, summed.
+    fn todays_dqb(obj: &GraphObjective, poses: &Poses, frames: &[usize], w: &[f64]) -> [f64; 2] {
+        let mut out = [0.0; 2];
+        let pose = |t: usize, i: usize| {
+            let o = t * obj.n + i;
+            dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o])).0
+        };
+        for (u, &node) in obj.nonkeys.iter().enumerate() {
+            let (a, b) = (obj.nk_off[u], obj.nk_off[u + 1]);
+            if a == b {
+                continue;
+            }
+            let th = obj.t_hat[u] as usize;
+            for &t in frames {
+                let rel: Vec<Dq> = (a..b)
+                    .map(|e| {
+                        let key = obj.keys[obj.nk_key[e] as usize] as usize;
+                        dqb::relative(&pose(t, key), &pose(th, key)).0
+                    })
+                    .collect();
+                let sp = [0, 1, 2].map(|c| obj.src_p[3 * u + c] as f64);
+                let sq = [0, 1, 2, 3].map(|c| obj.src_q[4 * u + c] as f64);
+                let r = dqb::warp(&rel, &w[a..b], sp, sq);
+                let o = t * obj.n + node as usize;
+                let x = [0, 1, 2].map(|c| poses.position[o][c] as f64 - r.p[c]);
+                out[0] += (x.iter().map(|v| v * v).sum::<f64>() + 1e-8).sqrt();
+                let (qu, _) = q4::normalize(q4::q64(poses.rotation[o]));
+                out[1] += q4::norm([0, 1, 2, 3].map(|c| r.q[c] - qu[c]));
+            }
+        }
+        out
+    }
+
+    fn dqb_terms_of(obj: &mut GraphObjective, poses: &Poses, frames: &[usize]) -> [f64; 2] {
+        let mut g = PoseGrads::zeros(poses.frames, poses.n);
+        let terms = obj.evaluate(poses, frames, 3, &mut g, &mut PhaseTimes::default());
+        let get = |name: &str| terms.iter().find(|t| t.0 == name).unwrap().1;
+        [get("nonkey_dqb"), get("nonkey_dqb_rotation")]
+    }
+
+    #[test]
+    fn at_unit_sharpness_and_zero_offsets_the_dqb_terms_are_todays() {
+        let frames = [1, 4, 20, 4];
+        let s = GraphSettings {
+            nonkey_weights: NonkeyWeights::Table,
+            ..dqb_only(GraphSettings::defaults(Profile::Release))
+        };
+        let (mut obj, poses) = case(s);
+        assert!(obj.s.nonkey_pose_offsets && obj.offsets.iter().all(|&x| x == 0.0));
+        let table = obj.nk_w.clone();
+        let got = dqb_terms_of(&mut obj, &poses, &frames);
+        let want = todays_dqb(&obj, &poses, &frames, &table);
+        for k in 0..2 {
+            assert!((got[k] - want[k]).abs() < 1e-12 * want[k].abs(), "{got:?} vs {want:?}");
+        }
+        let mut by_edge = HashMap::new();
+        for (u, &i) in obj.nonkeys.iter().enumerate() {
+            for e in obj.nk_off[u]..obj.nk_off[u + 1] {
+                let key = obj.keys[obj.nk_key[e] as usize];
+                by_edge.insert((obj.ids[i as usize], obj.ids[key as usize]), table[e] as f32);
+            }
+        }
+        let learned = obj.learned_edges();
+        let nonkey_edges = (0..learned.len()).filter(|&e| learned.kind[e] == EdgeKind::NonkeyKey);
+        let mut srcs = Vec::new();
+        for e in nonkey_edges {
+            assert_eq!(learned.weight[e], by_edge[&(learned.src[e], learned.dst[e])]);
+            srcs.push(learned.src[e]);
+        }
+        srcs.dedup();
+        assert_eq!(srcs, [101, 103, 105], "in the inputs' order");
+    }
+
+    #[test]
+    fn current_weights_at_the_prior_are_the_tables_exp_minus_lambda_d2() {
+        // the table's weights as the edges stage makes them at p° (λ = 1), normalised by new()
+        let table = |p0: &Poses, node: u32, th: usize, key: u32, _: f32| {
+            let d2 = dqb_term::dist2(p0.p(th, node as usize), p0.p(th, key as usize));
+            (-d2).exp() as f32
+        };
+        let s = dqb_only(GraphSettings::defaults(Profile::Release));
+        let (mut obj, _) = case_weighted(s, &table);
+        let (mut p0, frames) = (Poses::identity(obj.frames, obj.n), [0, 7, 13]);
+        p0.position.clone_from(&obj.p0);
+        let (mut todays, _) = case_weighted(
+            GraphSettings { nonkey_weights: NonkeyWeights::Table, ..obj.s.clone() },
+            &table,
+        );
+        for e in 0..obj.nk_w.len() {
+            assert!((obj.nk_w_eff[e] - obj.nk_w[e]).abs() < 1e-6, "edge {e}");
+        }
+        // the same poses (p° positions) through both objectives
+        let got = dqb_terms_of(&mut obj, &p0, &frames);
+        let want = dqb_terms_of(&mut todays, &p0, &frames);
+        for k in 0..2 {
+            assert!((got[k] - want[k]).abs() < 1e-6 * want[k].abs(), "{got:?} vs {want:?}");
+        }
+    }
+
+    #[test]
+    fn graph_terms_do_not_depend_on_the_thread_count() {
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let (mut obj, poses) = case(GraphSettings::defaults(Profile::Release));
+                let mut g = PoseGrads::zeros(poses.frames, poses.n);
+                let terms =
+                    obj.evaluate(&poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default());
+                let bits = |v: &mut dyn Iterator<Item = f32>| v.map(f32::to_bits).collect();
+                let pose: Vec<u32> = bits(
+                    &mut g.position.iter().flatten().chain(g.rotation.iter().flatten()).copied(),
+                );
+                let own: Vec<u32> =
+                    bits(&mut obj.params_mut().iter().flat_map(|p| p.grads.to_vec()));
+                (terms.iter().map(|t| t.1.to_bits()).collect::<Vec<_>>(), pose, own)
+            })
+        };
+        assert_eq!(run(1), run(3));
     }
 
     #[test]

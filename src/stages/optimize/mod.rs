@@ -10,6 +10,7 @@ pub mod density;
 pub mod graph_loss;
 pub mod image_loss;
 pub mod motion;
+pub mod nonkey_weights;
 pub mod objective;
 pub mod params;
 pub mod poses;

@@ -9,14 +9,15 @@
 //!   Its p° and u of a Gaussian are those of the input Gaussian it descends from
 //!   ([`TrainState::origin`]); a new Gaussian is a non-key with its origin's t̂ and edges.
 //!   At a density pass the objective is rebuilt with the learned key-key weights and takes
-//!   over the learned rest lengths and the non-keys' trained source poses
-//!   ([`GraphObjective::carry_over`], the release's `densify_params`).
+//!   over the learned rest lengths, the keys' θ and the non-keys' trained source poses,
+//!   weight and pose offsets ([`GraphObjective::carry_over`], the release's
+//!   `densify_params`).
 
 use std::collections::HashMap;
 
 use glam::DMat3;
 
-use super::graph_loss::{GraphObjective, GraphSettings};
+use super::graph_loss::{GraphObjective, GraphSettings, GraphTables};
 use super::motion::{self, EdgeSet, MotionForm};
 use super::poses::{PoseGrads, Poses};
 use super::smoothness;
@@ -38,6 +39,9 @@ pub struct GraphSource {
     pub u: Vec<f32>,
     /// R_cw of each frame's training camera `[T]`.
     pub rot_cw: Vec<DMat3>,
+    /// λ / unit² of the input edges table's non-key weights (from its graph metadata;
+    /// `None` when it has none).
+    pub nonkey_lambda: Option<f64>,
 }
 
 /// The vanilla recipe's kNN motion graph over the dynamic Gaussians.
@@ -211,16 +215,13 @@ pub fn build_graph(
         initial.rotation.extend(rows.iter().map(|&r| src.initial.rotation[t * n_in + r]));
         u.extend(rows.iter().map(|&r| src.u[t * n_in + r]));
     }
-    GraphObjective::from_tables(
-        &initial,
-        &state.ids,
-        &keys,
-        &edges,
-        &u,
-        &src.rot_cw,
-        settings.clone(),
-    )
-    .map_err(|e| anyhow::anyhow!("graph objective: {e}"))
+    let tables = GraphTables {
+        key_nodes: &keys,
+        edges: &edges,
+        nonkey_lambda: src.nonkey_lambda.unwrap_or(f64::NAN),
+    };
+    GraphObjective::from_tables(&initial, &state.ids, tables, &u, &src.rot_cw, settings.clone())
+        .map_err(|e| anyhow::anyhow!("graph objective: {e}"))
 }
 
 /// Roles and edges of the trained Gaussians: inputs' rows for surviving Gaussians, the

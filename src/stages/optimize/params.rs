@@ -11,6 +11,7 @@ use std::path::PathBuf;
 
 use super::graph_loss::{AnchorMetric, GraphInit, GraphSettings, Reduction};
 use super::image_loss::ImageLossWeights;
+use super::nonkey_weights::NonkeyWeights;
 use crate::stages::params::{Profile, check};
 
 /// Which objective is optimised.
@@ -128,6 +129,24 @@ crate::stage_params! {
         /// Eqs. 9 and 11 are written; mean: as the release and the base models average).
         graph_reduction: Reduction => Reduction [check::choice]
             { paper "sum", release "mean", row "", heading "Graph" },
+        /// Log-base of the non-key DQB blend weights, before the trainable per-key sharpness θ
+        /// and per-edge offsets Δw of both profiles (`table`: the edges table's weights, so
+        /// w ∝ w_table^|θ|; `current`: exp(−λ d²)^|θ| with d the distance to the key at the
+        /// non-key's t̂ in the current positions, recomputed each step as the release does).
+        nonkey_weights: NonkeyWeights => NonkeyWeights [check::choice]
+            { paper "table", release "current", row "32", heading "Graph" },
+        /// Weight of the L2 penalty mean(Δw²) on the non-key weight offsets within L_non-key
+        /// (scaled by λ_graph; the paper has no Δw: the release's).
+        nonkey_dweight_l2: f64 => f64 [check::parsed]
+            { paper "1e-5", release "1e-5", row "42", heading "Graph" },
+        /// Add trainable per-non-key offsets (Δp, Δq) to the DQB output, the release's
+        /// `per_nonkeyGaussian_dxyz_dxyzw` (the paper's DQB has none).
+        nonkey_pose_offsets: bool => bool [check::parsed]
+            { paper "false", release "true", row "36", heading "Graph" },
+        /// Weight of the L2 penalty mean(offset²) on those offsets within L_non-key (scaled by
+        /// λ_graph).
+        nonkey_offset_l2: f64 => f64 [check::parsed]
+            { paper "1e-3", release "1e-3", row "42", heading "Graph" },
         /// Depth ratio r_z of U.
         r_z: f64 => f64 [check::parsed]
             { paper "0.01", release "0.1", row "15", heading "Graph" },
@@ -346,6 +365,10 @@ impl OptimizeSettings {
                     batch_frames: v.graph_init_batch,
                     acceleration: v.graph_init_acc,
                 },
+                nonkey_weights: v.nonkey_weights,
+                nonkey_dweight_l2: v.lambda_graph * v.nonkey_dweight_l2,
+                nonkey_pose_offsets: v.nonkey_pose_offsets,
+                nonkey_offset_l2: v.lambda_graph * v.nonkey_offset_l2,
                 ..g
             },
             knn_k: v.knn_k,

@@ -14,6 +14,7 @@ use super::adam::{Adam, Group};
 use super::checkpoint::{self, Checkpoint};
 use super::density::{self, DensityStats};
 use super::graph_loss::GraphObjective;
+use super::nonkey_weights::{self, NonkeyWeights};
 use super::objective::{GraphSource, KnnMotion, build_graph, trained_graph};
 use super::params::{OptimizeParams, OptimizeSettings, Recipe};
 use super::poses::Poses;
@@ -56,13 +57,32 @@ pub fn batch_frames(seed: u64, step: u32, frames: usize, batch: usize) -> Vec<us
 struct GraphInputs {
     keys: KeyNodes,
     edges: Edges,
+    /// The edges table's graph metadata (kept in the learned table) and the λ / unit² of its
+    /// non-key weights, if it has them.
+    metadata: Option<String>,
+    nonkey_lambda: Option<f64>,
 }
 
-fn read_graph(p: &OptimizeParams) -> anyhow::Result<Option<GraphInputs>> {
+fn read_graph(p: &OptimizeParams, s: &OptimizeSettings) -> anyhow::Result<Option<GraphInputs>> {
     let (Some(kn), Some(ed)) = (&p.keynodes, &p.edges) else { return Ok(None) };
     let keys = tables::key_nodes::read(&kn.join(tables::key_nodes::KeyNodesTable::file_name()))?;
-    let edges = tables::edges::read(&ed.join(tables::edges::EdgesTable::file_name()))?;
-    Ok(Some(GraphInputs { keys, edges }))
+    let path = ed.join(tables::edges::EdgesTable::file_name());
+    let edges = tables::edges::read(&path)?;
+    let meta = tables::io::TableReader::open::<tables::edges::EdgesTable>(&path)?
+        .metadata_value(crate::stages::edges::GRAPH_KEY);
+    let nonkey_lambda = meta.as_deref().map(nonkey_weights::lambda_from_graph_metadata);
+    let nonkey_lambda = match (nonkey_lambda, s.graph.nonkey_weights) {
+        (Some(Ok(l)), _) => Some(l),
+        (_, NonkeyWeights::Table) => None,
+        (None, NonkeyWeights::Current) => anyhow::bail!(
+            "{}: no '{}' metadata (non-key weight sharpness and distance unit), which \
+             --nonkey-weights current needs; write the table with `usplat4d edges`",
+            path.display(),
+            crate::stages::edges::GRAPH_KEY
+        ),
+        (Some(Err(e)), NonkeyWeights::Current) => anyhow::bail!("{}: {e}", path.display()),
+    };
+    Ok(Some(GraphInputs { keys, edges, metadata: meta, nonkey_lambda }))
 }
 
 /// The recipe's non-image terms.
@@ -182,7 +202,15 @@ fn graph_source(
             glam::DMat3::from_mat4(w2c)
         })
         .collect();
-    Ok(GraphSource { keys: g.keys.clone(), edges: g.edges.clone(), row, initial, u, rot_cw })
+    Ok(GraphSource {
+        keys: g.keys.clone(),
+        edges: g.edges.clone(),
+        row,
+        initial,
+        u,
+        rot_cw,
+        nonkey_lambda: g.nonkey_lambda,
+    })
 }
 
 /// Input files whose bytes the checkpoint fingerprint covers.
@@ -257,7 +285,7 @@ pub fn run_timed(
         );
     }
     let graph = match s.recipe {
-        Recipe::Usplat4d => read_graph(p)?,
+        Recipe::Usplat4d => read_graph(p, &s)?,
         Recipe::Vanilla => None,
     };
     let role: HashMap<u32, Role> = graph
@@ -493,6 +521,10 @@ fn write_outputs(
             &keys,
             &prov,
         )?;
+        let prov = match &g.metadata {
+            Some(m) => prov.with_metadata(crate::stages::edges::GRAPH_KEY, m),
+            None => prov,
+        };
         tables::edges::write(&p.out.join(tables::edges::EdgesTable::file_name()), edges, &prov)?;
     }
     Ok(())

@@ -21,7 +21,9 @@ use super::super::motion;
 use super::super::poses::{PoseGrads, Poses};
 use super::super::smoothness;
 use super::super::train::batch_frames;
-use super::{GraphObjective, Reduction, dqb, q4};
+use super::{GraphObjective, Reduction};
+use crate::math::dqb;
+use crate::math::quat64 as q4;
 use crate::util::rng::mix;
 
 /// Settings of the graph initialisation (rows 37-38; where the paper gives no value the
@@ -133,7 +135,7 @@ impl GraphObjective {
             let frames = batch_frames(mix(seed ^ 0x6e6f_6e6b), iters, self.frames, batch);
             self.g_src_p.fill(0.0);
             self.g_src_q.fill(0.0);
-            let (p, q) = self.dqb_terms(poses, &frames, &mut unused);
+            let [p, q] = self.dqb_terms(poses, &frames, &mut unused);
             loss = s.dqb * p + s.dqb_rotation * q;
             adam.begin_step();
             adam.update(0, &mut self.src_p, &self.g_src_p);
@@ -230,8 +232,10 @@ impl GraphObjective {
     }
 
     /// Step 3: each linked non-key's pose at every frame becomes the DQB of its keys'
-    /// current motions from t̂ applied to its source pose (Eq. 10).
-    fn propagate(&self, poses: &mut Poses) {
+    /// current motions from t̂ applied to its source pose (Eq. 10), with the blend weights
+    /// and pose offsets of the DQB term.
+    fn propagate(&mut self, poses: &mut Poses) {
+        self.blend_weights_of(&poses.position);
         let (n, nk) = (self.n, self.keys.len());
         let dq_key: Vec<dqb::Dq> = (0..self.frames * nk)
             .into_par_iter()
@@ -240,26 +244,31 @@ impl GraphObjective {
                 dqb::from_pose(q4::q64(poses.rotation[o]), q4::v64(poses.position[o])).0
             })
             .collect();
+        let this = &*self;
         let (position, rotation) = (&mut poses.position, &mut poses.rotation);
         position.par_chunks_mut(n).zip(rotation.par_chunks_mut(n)).enumerate().for_each(
             |(t, (pos, rot))| {
-                let mut rel = Vec::new();
-                for (u, &node) in self.nonkeys.iter().enumerate() {
-                    let (a, b) = (self.nk_off[u], self.nk_off[u + 1]);
+                for (u, &node) in this.nonkeys.iter().enumerate() {
+                    let (a, b) = (this.nk_off[u], this.nk_off[u + 1]);
                     if a == b {
                         continue;
                     }
-                    let th = self.t_hat[u] as usize;
-                    rel.clear();
-                    rel.extend((a..b).map(|e| {
-                        let k = self.nk_key[e] as usize;
-                        dqb::relative(&dq_key[t * nk + k], &dq_key[th * nk + k]).0
-                    }));
-                    let sp = [0, 1, 2].map(|c| self.src_p[3 * u + c] as f64);
-                    let sq = [0, 1, 2, 3].map(|c| self.src_q[4 * u + c] as f64);
-                    let out = dqb::warp(&rel, &self.nk_w[a..b], sp, sq);
-                    pos[node as usize] = out.p.map(|v| v as f32);
-                    rot[node as usize] = out.q.map(|v| v as f32);
+                    let th = this.t_hat[u] as usize;
+                    let mut blend = [0.0; 8];
+                    for e in a..b {
+                        let k = this.nk_key[e] as usize;
+                        let r = dqb::relative(&dq_key[t * nk + k], &dq_key[th * nk + k]).0;
+                        for c in 0..8 {
+                            blend[c] += this.nk_w_eff[e] * r[c];
+                        }
+                    }
+                    let sp = [0, 1, 2].map(|c| this.src_p[3 * u + c] as f64);
+                    let sq = [0, 1, 2, 3].map(|c| this.src_q[4 * u + c] as f64);
+                    let out = dqb::Warp::new(&blend, sp, sq).out;
+                    let off = this.offsets.get(7 * u..7 * u + 7).unwrap_or(&[0.0; 7]);
+                    pos[node as usize] = [0, 1, 2].map(|c| (out.p[c] + off[c] as f64) as f32);
+                    rot[node as usize] =
+                        [0, 1, 2, 3].map(|c| (out.q[c] + off[3 + c] as f64) as f32);
                 }
             },
         );
