@@ -328,6 +328,7 @@ mod tests {
             key_edges: &key_edges,
             u: &u,
             rot_cw: &rot,
+            nonkey_lambda: 1.0,
         };
         (GraphObjective::new(&inp, s).unwrap(), prior, truth)
     }
