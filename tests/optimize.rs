@@ -336,11 +336,11 @@ fn recovery_runs(
 /// | run | random: error | PSNR | along rays: error | PSNR |
 /// |---|---|---|---|---|
 /// | prior | 0.195 | 23.50 | 0.195 | 23.37 |
-/// | vanilla | 0.099 | 21.96 | 0.074 | 21.95 |
-/// | usplat4d paper | 0.119 | 23.47 | 0.073 | 23.78 |
-/// | paper, `--anchor-metric release` | 0.150 | 22.27 | 0.102 | 22.56 |
-/// | usplat4d release | 0.200 (0.109) | 19.57 | 0.246 (0.107) | 19.54 |
-/// | release, `--graph-init-iters 0` | 0.121 (0.109) | 22.93 | 0.082 (0.107) | 22.95 |
+/// | vanilla | 0.098 | 22.12 | 0.074 | 21.90 |
+/// | usplat4d paper | 0.119 | 23.47 | 0.073 | 23.77 |
+/// | paper, `--anchor-metric release` | 0.150 | 22.27 | 0.102 | 22.57 |
+/// | usplat4d release | 0.225 (0.108) | 19.35 | 0.288 (0.110) | 19.28 |
+/// | release, `--graph-init-iters 0` | 0.115 (0.108) | 22.98 | 0.081 (0.110) | 22.97 |
 ///
 /// usplat4d renders the far views better on both priors but brings the randomly drifted
 /// points less close than vanilla (along the rays it is level: 0.073 against 0.074, and at
