@@ -457,6 +457,27 @@ fn reduce(parts: Vec<Partial>, g_edges: Option<&mut EdgeGrad>) -> f64 {
     value
 }
 
+/// What the rigidity terms need of an edge source i between frames t0 and t1: its unit
+/// rotations a, b, their relative rotation c = a b* and its matrix, and its positions.
+struct SourceMotion {
+    a: Q,
+    b: Q,
+    c: Q,
+    rm: M3,
+    pi0: V3,
+    pi1: V3,
+}
+
+impl SourceMotion {
+    #[inline]
+    fn of(track: &Track, i: usize, t0: usize, t1: usize) -> Self {
+        let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
+        let c = q4::mul(a, q4::conj(b));
+        let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+        SourceMotion { a, b, c, rm: q4::to_rotmat(c), pi0, pi1 }
+    }
+}
+
 #[inline]
 fn sub(a: V3, b: V3) -> V3 {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
@@ -487,10 +508,7 @@ pub fn rigidity(
     let m = track.m;
     offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
         for (i, run) in by_source(edges.src) {
-            let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
-            let c = q4::mul(a, q4::conj(b));
-            let rm = q4::to_rotmat(c);
-            let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+            let SourceMotion { a, b, c, rm, pi0, pi1 } = SourceMotion::of(track, i, t0, t1);
             let mut g_rm: M3 = [[0.0; 3]; 3];
             let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
             for e in run {
@@ -639,10 +657,7 @@ pub fn isometry_rigidity(
         for t1 in ts {
             let (t0, r0, r1) = (t1 - 1, (t1 - 1 - base) * m, (t1 - base) * m);
             for (i, run) in by_source(edges.src) {
-                let (a, b) = (track.u[track.at(t0, i)], track.u[track.at(t1, i)]);
-                let c = q4::mul(a, q4::conj(b));
-                let rm = q4::to_rotmat(c);
-                let (pi0, pi1) = (track.p[track.at(t0, i)], track.p[track.at(t1, i)]);
+                let SourceMotion { a, b, c, rm, pi0, pi1 } = SourceMotion::of(track, i, t0, t1);
                 let mut g_rm: M3 = [[0.0; 3]; 3];
                 let (mut g_pi0, mut g_pi1) = ([0.0; 3], [0.0; 3]);
                 for e in run {
