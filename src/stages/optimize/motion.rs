@@ -825,11 +825,10 @@ mod tests {
         assert!(fails.is_empty(), "{}", fails.join("\n"));
     }
 
-    #[test]
-    fn streamed_frame_blocks_equal_the_whole_track() {
-        let (t, m) = (23, 6);
-        let (tr, src, dst, w, rest) = case(11, t, m);
-        let (n, nodes) = (9, [7u32, 0, 3, 8, 2, 5]);
+    /// Poses `[T, n]` holding the track's Gaussian k at pose index `nodes[k]` (identity
+    /// elsewhere).
+    fn poses_of(tr: &Track, n: usize, nodes: &[u32]) -> Poses {
+        let (t, m) = (tr.frames, tr.m);
         let mut poses = Poses::identity(t, n);
         for f in 0..t {
             for (k, &i) in nodes.iter().enumerate() {
@@ -837,6 +836,15 @@ mod tests {
                 poses.rotation[f * n + i as usize] = tr.q[f * m + k].map(|x| x as f32);
             }
         }
+        poses
+    }
+
+    #[test]
+    fn streamed_frame_blocks_equal_the_whole_track() {
+        let (t, m) = (23, 6);
+        let (tr, src, dst, w, rest) = case(11, t, m);
+        let (n, nodes) = (9, [7u32, 0, 3, 8, 2, 5]);
+        let poses = poses_of(&tr, n, &nodes);
         let e = EdgeSet { src: &src, dst: &dst, w: &w };
         let terms = |tr: &Track, g: &mut TrackGrad| {
             [
@@ -880,13 +888,7 @@ mod tests {
         let e = EdgeSet { src: &src, dst: &dst, w: &w };
         let (iso, rig) = ((0.4, 0.7), (0.3, 1.3));
         let (n, nodes) = (9, [7u32, 0, 3, 8, 2, 5]);
-        let mut poses = Poses::identity(t, n);
-        for f in 0..t {
-            for (k, &i) in nodes.iter().enumerate() {
-                poses.position[f * n + i as usize] = tr.p[f * m + k].map(|x| x as f32);
-                poses.rotation[f * n + i as usize] = tr.q[f * m + k].map(|x| x as f32);
-            }
-        }
+        let poses = poses_of(&tr, n, &nodes);
         let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * (1.0 + b.abs());
         for first in [0, 2] {
             let tr = Track { first, ..tr.clone() };
