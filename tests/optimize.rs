@@ -348,7 +348,8 @@ fn recovery_runs(
 /// points the training camera never sees (the far legs of the walking fox) get no key nodes,
 /// so DQB moves them with the keys of the parts that are seen. Propagating the oracle's own
 /// keys to every non-key (the release's graph initialisation run on the oracle at 24 frames,
-/// 128², 6,000 Gaussians) leaves them 0.11 from the truth at the unseen pairs (0.04 over all
+/// 128², 6,000 Gaussians; a scratch measurement, see README's "Graph initialisation") leaves
+/// them 0.11 from the truth at the unseen pairs (0.04 over all
 /// dynamic pairs). In the paper-literal metric the DQB pull is also weighted by 1/u of the
 /// non-key at that frame, so it vanishes at exactly the unseen frames.
 #[test]
