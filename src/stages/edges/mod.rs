@@ -56,7 +56,7 @@ use rayon::prelude::*;
 
 use super::graph::metric::{MetricForm, apply};
 use super::graph::search::{self, FrameQuery, KeyFrames};
-use super::graph::tracks::{GraphScope, ScopedTracks, Tracks};
+use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks};
 use super::params::check;
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
@@ -141,50 +141,45 @@ crate::stage_params! {
         scene: Option<PathBuf>,
     }
     params {
-        /// Gaussians taken into the graph (dynamic, all): keys and non-keys outside it get
-        /// no edges and are nobody's neighbour.
-        graph_scope: GraphScope => GraphScope [check::choice]
-            { paper "dynamic", release "dynamic", row "3", heading "Method" },
-        /// Key → key mode (ua-knn, euclidean, minmax-distance, max-contrib, max-native).
-        key_edge_mode: KeyEdgeMode => KeyEdgeMode [check::choice]
-            { paper "ua-knn", release "minmax-distance", row "26", heading "Method" },
-        /// Neighbours per key.
-        key_knn_k: usize => usize [check::count]
-            { paper "8", release "120", row "25", heading "Method" },
-        /// Fill of keys with fewer than k qualifying neighbours (nearest, first-keys, none).
-        key_knn_fill: KeyKnnFill => KeyKnnFill [check::choice]
-            { paper "nearest", release "first-keys", row "25", heading "Method" },
-        /// Key edge weights (rigidity, uniform).
-        key_edge_weights: KeyEdgeWeights => KeyEdgeWeights [check::choice]
-            { paper "uniform", release "uniform", row "27", heading "Method" },
-        /// β of the rigidity weights exp(−β·cv²).
-        rigidity_sharpness: f64 => f64 [check::parsed]
-            { paper "50", release "50", row "", heading "Method" },
-        /// Non-key assignment (argmin-sum-mahalanobis, knn-max-dist).
-        nonkey_assign_mode: NonkeyAssignMode => NonkeyAssignMode [check::choice]
-            { paper "argmin-sum-mahalanobis", release "knn-max-dist", row "30", heading "Method" },
-        /// Keys per non-key in `knn-max-dist`.
-        nonkey_k: usize => usize [check::count]
-            { paper "5", release "5", row "31", heading "Method" },
-        /// λ of the non-key weights exp(−λ d²).
-        nonkey_weight_sharpness: f64 => f64 [check::parsed]
-            { paper "100", release "100", row "32", heading "Method" },
-        /// Scale normalisation (paper App. "Adaptation": unify the spatial volume, normalise
-        /// the thresholds): u of Eqs. 7-8 divided by the keys' median reliable u, and the
-        /// distances of the non-key weights by the graph's bounding-box diagonal (over all
-        /// frames), so that scene scale and image resolution do not change the graph.
-        scale_normalise: bool => bool [check::parsed]
-            { paper "true", release "false", row "32", heading "Method" },
-        /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
-        /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) (unused by the release's edges).
-        metric_form: MetricForm => MetricForm [check::choice]
-            { paper "weight", release "inverse", row "16", heading "Method" },
-        /// Anisotropy r_x,r_y,r_z of Eq. 6 (unused by the release's edges).
-        r_xyz: [f64; 3] => [f64; 3] [check::triple]
-            { paper "1,1,0.01", release "1,1,0.1", row "15", heading "Method" },
-        /// Confidence mask of the release modes: normalised contribution > c, i.e. u < 1/c.
-        contrib_threshold: f32 => f32 [check::positive]
-            { paper "2", release "2", row "14", heading "Method" },
+        heading "Method" {
+            graph_scope: GraphScope => GraphScope { shared GRAPH_SCOPE },
+            /// Key → key mode (ua-knn, euclidean, minmax-distance, max-contrib, max-native).
+            key_edge_mode: KeyEdgeMode => KeyEdgeMode [check::choice]
+                { paper "ua-knn", release "minmax-distance", row "26" },
+            /// Neighbours per key.
+            key_knn_k: usize => usize [check::count] { paper "8", release "120", row "25" },
+            /// Fill of keys with fewer than k qualifying neighbours (nearest, first-keys, none).
+            key_knn_fill: KeyKnnFill => KeyKnnFill [check::choice]
+                { paper "nearest", release "first-keys", row "25" },
+            /// Key edge weights (rigidity, uniform).
+            key_edge_weights: KeyEdgeWeights => KeyEdgeWeights [check::choice]
+                { paper "uniform", release "uniform", row "27" },
+            /// β of the rigidity weights exp(−β·cv²).
+            rigidity_sharpness: f64 => f64 [check::parsed] { paper "50", release "50" },
+            /// Non-key assignment (argmin-sum-mahalanobis, knn-max-dist).
+            nonkey_assign_mode: NonkeyAssignMode => NonkeyAssignMode [check::choice]
+                { paper "argmin-sum-mahalanobis", release "knn-max-dist", row "30" },
+            /// Keys per non-key in `knn-max-dist`.
+            nonkey_k: usize => usize [check::count] { paper "5", release "5", row "31" },
+            /// λ of the non-key weights exp(−λ d²).
+            nonkey_weight_sharpness: f64 => f64 [check::parsed]
+                { paper "100", release "100", row "32" },
+            /// Scale normalisation (paper App. "Adaptation": unify the spatial volume, normalise
+            /// the thresholds): u of Eqs. 7-8 divided by the keys' median reliable u, and the
+            /// distances of the non-key weights by the graph's bounding-box diagonal (over all
+            /// frames), so that scene scale and image resolution do not change the graph.
+            scale_normalise: bool => bool [check::parsed]
+                { paper "true", release "false", row "32" },
+            /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
+            /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) (unused by the release's edges).
+            metric_form: MetricForm => MetricForm [check::choice]
+                { paper "weight", release "inverse", row "16" },
+            /// Anisotropy r_x,r_y,r_z of Eq. 6 (unused by the release's edges).
+            r_xyz: [f64; 3] => [f64; 3] [check::triple]
+                { paper "1,1,0.01", release "1,1,0.1", row "15" },
+            /// Confidence mask of the release modes: normalised contribution > c, i.e. u < 1/c.
+            contrib_threshold: f32 => f32 [check::positive] { paper "2", release "2", row "14" },
+        }
     }
     copied {}
 }

@@ -10,6 +10,7 @@ use std::path::Path;
 use glam::{DMat3, DQuat, DVec3};
 
 use crate::model::Model;
+use crate::stages::params::{Shared, check};
 use crate::tables::uncertainty::UncertaintyReader;
 use crate::util::rng::Rng;
 
@@ -83,6 +84,18 @@ pub enum GraphScope {
     /// Every Gaussian of the uncertainty table.
     All,
 }
+
+/// `--graph-scope` of `keynodes` and `edges`, declared once for both (profile row 3).
+pub const GRAPH_SCOPE: Shared<GraphScope> = Shared {
+    doc: &[
+        "Gaussians taken into the graph (dynamic, all): the others get the key-node role",
+        "`unlinked`, no edges, and are nobody's neighbour.",
+    ],
+    parse: check::choice,
+    paper: "dynamic",
+    release: "dynamic",
+    row: "3",
+};
 
 /// The tracks of the Gaussians in a [`GraphScope`], and where they sit in the uncertainty
 /// table.

@@ -67,7 +67,7 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
-use super::graph::tracks::{GraphScope, ScopedTracks, Tracks};
+use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks};
 use super::params::{Amount, check};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -249,58 +249,61 @@ crate::stage_params! {
         out: PathBuf,
     }
     params {
-        /// Gaussians that may be keys or non-keys (dynamic, all); the others are `unlinked`.
-        graph_scope: GraphScope => GraphScope [check::choice]
-            { paper "dynamic", release "dynamic", row "3", heading "Method" },
-        /// Confident Gaussians per frame: a count or a percentage of N.
-        candidates_per_frame: Amount => Amount [check::share]
-            { paper "2%", release "1000", row "18", heading "Method" },
-        /// Voxel edge: world units, a percentage of the frame's bounding-box diagonal, or
-        /// `auto` (the finest edge whose keys fit `key-budget`).
-        voxel_size: VoxelSize => VoxelSize [check::parsed]
-            { paper "auto", release "0.2", row "19", heading "Method" },
-        /// Key count targeted by `voxel-size auto`: a count or a percentage of N (paper:
-        /// 1:49 key/non-key).
-        key_budget: Amount => Amount [check::share]
-            { paper "2%", release "1500", row "23", heading "Method" },
-        /// Pick within a voxel (random, lowest-contribution).
-        voxel_pick: VoxelPick => VoxelPick [check::choice]
-            { paper "random", release "lowest-contribution", row "20", heading "Method" },
-        /// Candidate pool (uncertainty; ablation (a): uniform).
-        candidate_source: CandidateSource => CandidateSource [check::choice]
-            { paper "uncertainty", release "uncertainty", row "", heading "Ablations" },
-        /// Candidate thinning (voxel; ablation (d): random).
-        candidate_sampling: CandidateSampling => CandidateSampling [check::choice]
-            { paper "voxel", release "voxel", row "", heading "Ablations" },
-        /// Significant-period counting (consecutive, total).
-        spt_counting: SptCounting => SptCounting [check::choice]
-            { paper "consecutive", release "total", row "21", heading "Method" },
-        /// Upper cap on the per-frame significance threshold of u (release: 2, i.e.
-        /// normalised contribution 0.5; inf for none).
-        spt_u_max: f32 => f32 [check::parsed]
-            { paper "inf", release "2", row "22", heading "Method" },
-        /// Minimum significant period, frames.
-        min_significant_period: u32 => u32 [check::parsed]
-            { paper "5", release "5", row "", heading "Method" },
-        /// Cap on the number of keys, 0 for none.
-        max_key_nodes: usize => Option<usize> [check::parsed]
-            { paper "0", release "1500", row "23", heading "Method" },
-        /// Most non-keys kept in the graph: a count, `none`, or `by-frames` (36,000 if T > 350,
-        /// 72,000 if T > 40, else 150,000).
-        nonkey_cap: NonkeyCap => NonkeyCap [check::parsed]
-            { paper "none", release "by-frames", row "33", heading "Non-keys" },
-        /// A non-key stays in the graph only if its largest contribution max_t 1/u_{i,t}
-        /// exceeds this, 0 for no minimum.
-        nonkey_min_contrib: f64 => Option<f64> [check::non_negative]
-            { paper "0", release "0.01", row "34", heading "Non-keys" },
-        /// Non-keys left out of the graph: deleted at the start of training, or kept without
-        /// edges (keep, cull; the paper leaves none out).
-        unselected_nonkeys: UnselectedNonkeys => UnselectedNonkeys [check::choice]
-            { paper "keep", release "cull", row "35", heading "Non-keys" },
+        heading "Method" {
+            graph_scope: GraphScope => GraphScope { shared GRAPH_SCOPE },
+            /// Confident Gaussians per frame: a count or a percentage of N.
+            candidates_per_frame: Amount => Amount [check::share]
+                { paper "2%", release "1000", row "18" },
+            /// Voxel edge: world units, a percentage of the frame's bounding-box diagonal, or
+            /// `auto` (the finest edge whose keys fit `key-budget`).
+            voxel_size: VoxelSize => VoxelSize [check::parsed]
+                { paper "auto", release "0.2", row "19" },
+            /// Key count targeted by `voxel-size auto`: a count or a percentage of N (paper:
+            /// 1:49 key/non-key).
+            key_budget: Amount => Amount [check::share] { paper "2%", release "1500", row "23" },
+            /// Pick within a voxel (random, lowest-contribution).
+            voxel_pick: VoxelPick => VoxelPick [check::choice]
+                { paper "random", release "lowest-contribution", row "20" },
+            /// Significant-period counting (consecutive, total).
+            spt_counting: SptCounting => SptCounting [check::choice]
+                { paper "consecutive", release "total", row "21" },
+            /// Upper cap on the per-frame significance threshold of u (release: 2, i.e.
+            /// normalised contribution 0.5; inf for none).
+            spt_u_max: f32 => f32 [check::parsed] { paper "inf", release "2", row "22" },
+            /// Minimum significant period, frames.
+            min_significant_period: u32 => u32 [check::parsed] { paper "5", release "5" },
+            /// Cap on the number of keys, 0 for none.
+            max_key_nodes: usize => Option<usize> [check::parsed]
+                { paper "0", release "1500", row "23" },
+        }
+        heading "Ablations" {
+            /// Candidate pool (uncertainty; ablation (a): uniform).
+            candidate_source: CandidateSource => CandidateSource [check::choice]
+                { paper "uncertainty", release "uncertainty" },
+            /// Candidate thinning (voxel; ablation (d): random).
+            candidate_sampling: CandidateSampling => CandidateSampling [check::choice]
+                { paper "voxel", release "voxel" },
+        }
+        heading "Non-keys" {
+            /// Most non-keys kept in the graph: a count, `none`, or `by-frames` (36,000 if T > 350,
+            /// 72,000 if T > 40, else 150,000).
+            nonkey_cap: NonkeyCap => NonkeyCap [check::parsed]
+                { paper "none", release "by-frames", row "33" },
+            /// A non-key stays in the graph only if its largest contribution max_t 1/u_{i,t}
+            /// exceeds this, 0 for no minimum.
+            nonkey_min_contrib: f64 => Option<f64> [check::non_negative]
+                { paper "0", release "0.01", row "34" },
+            /// Non-keys left out of the graph: deleted at the start of training, or kept without
+            /// edges (keep, cull; the paper leaves none out).
+            unselected_nonkeys: UnselectedNonkeys => UnselectedNonkeys [check::choice]
+                { paper "keep", release "cull", row "35" },
+        }
     }
     copied {
-        /// Seed of the random picks.
-        seed: u64 [check::parsed] { default "0", heading "Method" },
+        heading "Method" {
+            /// Seed of the random picks.
+            seed: u64 [check::parsed] { default "0" },
+        }
     }
 }
 
