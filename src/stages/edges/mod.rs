@@ -56,7 +56,7 @@ use rayon::prelude::*;
 
 use super::graph::metric::{MetricForm, apply};
 use super::graph::search::{self, FrameQuery, KeyFrames};
-use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks};
+use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks, bbox_diagonal};
 use super::params::check;
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
@@ -204,7 +204,7 @@ pub const GRAPH_KEY: &str = "usplat4d.graph";
 /// key-edge start weights, the graph scope, and where the non-keys' DQB source poses come
 /// from (their pose at t̂, `key_nodes.t_hat`, in the model).
 pub fn graph_metadata(s: &EdgeSettings, tracks: &Tracks) -> serde_json::Value {
-    let diag = diagonal(&tracks.positions);
+    let diag = bbox_diagonal(&tracks.positions);
     let unit = if s.scale_normalise && diag > 0.0 { diag } else { 1.0 };
     serde_json::json!({
         "r-xyz": s.r_xyz,
@@ -325,7 +325,7 @@ pub fn build_with_report(
                 *u *= u_norm;
             }
         }
-        let diag = diagonal(&tracks.positions);
+        let diag = bbox_diagonal(&tracks.positions);
         // graph_metadata records the same unit
         let scale = if diag > 0.0 { 1.0 / (diag * diag) } else { 1.0 };
         (u_norm, s.nonkey_weight_sharpness * scale)
@@ -518,18 +518,6 @@ fn keys_in_scope(keys: &KeyNodes, scoped: &ScopedTracks) -> Result<KeyNodes, Edg
         t_hat: r.iter().map(|&i| keys.t_hat[i]).collect(),
         significant_period: r.iter().map(|&i| keys.significant_period[i]).collect(),
     })
-}
-
-/// Diagonal of the axis-aligned bounding box of `p`.
-fn diagonal(p: &[[f32; 3]]) -> f64 {
-    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    for q in p {
-        for k in 0..3 {
-            lo[k] = lo[k].min(q[k] as f64);
-            hi[k] = hi[k].max(q[k] as f64);
-        }
-    }
-    (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f64>().sqrt()
 }
 
 /// One key's `[T]` positions, u and eligibility.

@@ -97,6 +97,19 @@ pub const GRAPH_SCOPE: Shared<GraphScope> = Shared {
     row: "3",
 };
 
+/// Diagonal of the axis-aligned bounding box of the positions `p` `[N, 3]` (0 for none).
+pub fn bbox_diagonal(p: &[[f32; 3]]) -> f64 {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for q in p {
+        for k in 0..3 {
+            lo[k] = lo[k].min(q[k] as f64);
+            hi[k] = hi[k].max(q[k] as f64);
+        }
+    }
+    (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f64>().sqrt()
+}
+
 /// The tracks of the Gaussians in a [`GraphScope`], and where they sit in the uncertainty
 /// table.
 #[derive(Debug, Clone)]

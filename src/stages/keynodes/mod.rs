@@ -67,7 +67,7 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
-use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks};
+use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks, bbox_diagonal};
 use super::params::{Amount, check};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -649,19 +649,6 @@ fn in_table(keys: KeyNodes, scoped: &ScopedTracks) -> KeyNodes {
         out.significant_period[r] = keys.significant_period[i];
     }
     out
-}
-
-/// Diagonal of the axis-aligned bounding box of `p`.
-fn bbox_diagonal(p: &[[f32; 3]]) -> f64 {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for q in p {
-        for k in 0..3 {
-            lo[k] = lo[k].min(q[k] as f64);
-            hi[k] = hi[k].max(q[k] as f64);
-        }
-    }
-    (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f64>().sqrt()
 }
 
 /// `usplat4d keynodes`: read the model and the uncertainty table, select, write
