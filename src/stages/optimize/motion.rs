@@ -828,6 +828,21 @@ mod tests {
         poses
     }
 
+    /// `terms` on the gathered track of `nodes` over all frames: the values and the pose
+    /// gradients that a streamed evaluation must reproduce.
+    fn on_whole_track<const K: usize>(
+        poses: &Poses,
+        nodes: &[u32],
+        terms: impl Fn(&Track, &mut TrackGrad) -> [f64; K],
+    ) -> ([f64; K], PoseGrads) {
+        let whole = Track::gather(poses, nodes);
+        let mut g = TrackGrad::zeros(&whole);
+        let want = terms(&whole, &mut g);
+        let mut want_g = PoseGrads::zeros(poses.frames, poses.n);
+        g.scatter(&whole, nodes, poses.n, &mut want_g);
+        (want, want_g)
+    }
+
     #[test]
     fn streamed_frame_blocks_equal_the_whole_track() {
         let (t, m) = (23, 6);
@@ -844,11 +859,7 @@ mod tests {
                 isometry(on, &rest, 0.4, 1.0),
             ]
         };
-        let whole = Track::gather(&poses, &nodes);
-        let mut g = TrackGrad::zeros(&whole);
-        let want = terms(&whole, &mut g);
-        let mut want_g = PoseGrads::zeros(t, n);
-        g.scatter(&whole, &nodes, n, &mut want_g);
+        let (want, want_g) = on_whole_track(&poses, &nodes, terms);
         // blocks of 4 frames plus 3 frames of context, waves of at most 3 blocks
         let mut got_g = PoseGrads::zeros(t, n);
         let layout = (4 * m, 3 * 7 * m);
@@ -897,11 +908,7 @@ mod tests {
         // streamed in blocks of 4 frames with one frame of context
         let terms =
             |tr: &Track, g: &mut TrackGrad| isometry_rigidity(tr, e, &rest, iso, rig, g, None);
-        let whole = Track::gather(&poses, &nodes);
-        let mut g = TrackGrad::zeros(&whole);
-        let want = terms(&whole, &mut g);
-        let mut want_g = PoseGrads::zeros(t, n);
-        g.scatter(&whole, &nodes, n, &mut want_g);
+        let (want, want_g) = on_whole_track(&poses, &nodes, terms);
         let mut got_g = PoseGrads::zeros(t, n);
         let got = stream_frames_in(&poses, &nodes, 1, (4 * m, 3 * 5 * m), &mut got_g, terms);
         assert!(close(got[0], want[0]) && close(got[1], want[1]), "{got:?} vs {want:?}");
