@@ -56,7 +56,9 @@ use rayon::prelude::*;
 
 use super::graph::metric::{MetricForm, apply};
 use super::graph::search::{self, FrameQuery, KeyFrames};
-use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks, bbox_diagonal};
+use super::graph::tracks::{
+    GRAPH_SCOPE, GraphInputs, GraphScope, ScopedTracks, Tracks, bbox_diagonal,
+};
 use super::params::check;
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
@@ -123,12 +125,10 @@ crate::stage_params! {
     /// Concrete settings of edge construction (recorded in the table's provenance).
     pub struct EdgeSettings;
     inputs {
-        /// Model directory (gaussians.parquet + trajectories.parquet).
-        #[arg(long, value_name = "MODEL_DIR")]
-        model: PathBuf,
-        /// Directory holding uncertainty.parquet.
-        #[arg(long, value_name = "DIR")]
-        uncertainty: PathBuf,
+        /// The model and its uncertainty table.
+        #[command(flatten)]
+        #[serde(flatten)]
+        graph: GraphInputs,
         /// Directory holding key_nodes.parquet.
         #[arg(long, value_name = "DIR")]
         keynodes: PathBuf,
@@ -590,9 +590,7 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
     use crate::tables::Table;
     let _span = tracing::info_span!("edges").entered();
     let settings = p.resolve()?;
-    let model = crate::model::Model::load(&p.model)?;
-    let unc = p.uncertainty.join(crate::tables::uncertainty::UncertaintyTable::file_name());
-    let scoped = super::graph::tracks::load_tracks(&model, &unc, settings.graph_scope, ctx)?;
+    let (model, scoped) = p.graph.load(settings.graph_scope, ctx)?;
     let tracks = &scoped.tracks;
     let key_path = p.keynodes.join(crate::tables::key_nodes::KeyNodesTable::file_name());
     let keys = keys_in_scope(&crate::tables::key_nodes::read(&key_path)?, &scoped)

@@ -67,7 +67,9 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
-use super::graph::tracks::{GRAPH_SCOPE, GraphScope, ScopedTracks, Tracks, bbox_diagonal};
+use super::graph::tracks::{
+    GRAPH_SCOPE, GraphInputs, GraphScope, ScopedTracks, Tracks, bbox_diagonal,
+};
 use super::params::{Amount, check};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -238,12 +240,10 @@ crate::stage_params! {
     /// Concrete settings of key-node selection (recorded in the table's provenance).
     pub struct KeynodeSettings;
     inputs {
-        /// Model directory (gaussians.parquet + trajectories.parquet).
-        #[arg(long, value_name = "MODEL_DIR")]
-        model: PathBuf,
-        /// Directory holding uncertainty.parquet.
-        #[arg(long, value_name = "DIR")]
-        uncertainty: PathBuf,
+        /// The model and its uncertainty table.
+        #[command(flatten)]
+        #[serde(flatten)]
+        graph: GraphInputs,
         /// Output directory (key_nodes.parquet).
         #[arg(long, value_name = "DIR")]
         out: PathBuf,
@@ -656,11 +656,7 @@ fn in_table(keys: KeyNodes, scoped: &ScopedTracks) -> KeyNodes {
 pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
     let _span = tracing::info_span!("keynodes").entered();
     let settings = p.resolve()?;
-    let model = crate::model::Model::load(&p.model)?;
-    let unc = p
-        .uncertainty
-        .join(<crate::tables::uncertainty::UncertaintyTable as crate::tables::Table>::file_name());
-    let scoped = super::graph::tracks::load_tracks(&model, &unc, settings.graph_scope, ctx)?;
+    let (_, scoped) = p.graph.load(settings.graph_scope, ctx)?;
     let tracks = &scoped.tracks;
     let (keys, mut report) = select_with_report(tracks, &settings);
     let keys = in_table(keys, &scoped);
@@ -687,7 +683,7 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
             "keynodes: no key node: no Gaussian of {} is reliable for a significant period \
              (the base model may be fitted too poorly, or the video is too short); the \
              usplat4d recipe then has no key anchors",
-            p.model.display()
+            p.graph.model.display()
         ));
     }
     let prov = crate::tables::Provenance::new(
