@@ -6,7 +6,8 @@
 //! A stage parameter is declared once: its name, help, the parser of its command-line
 //! value, the paper and release values (spelled as on the command line, parsed by that
 //! same parser) and, where it has one, the row of official-release.md §11 it comes from.
-//! Parameters are grouped under the `--help` heading they are listed under:
+//! Each parameter stands in the group of its `--help` heading (a heading may open several
+//! groups; clap lists the headings in the order they first appear):
 //!
 //! ```ignore
 //! stage_params! {
@@ -48,7 +49,8 @@
 //! records both). `copied` fields (e.g. a seed) have one value whatever the profile and go
 //! to the settings unchanged. A parameter that several stages take with one meaning
 //! (`graph-scope`) is a [`Shared`] constant, which holds its help, parser and values, and
-//! each stage names it with `{ shared NAME }`.
+//! each stage names it with `{ shared NAME }`, without doc lines or parser (either is a
+//! compile error, so neither can silently differ from the constant's).
 //!
 //! A new stage declares its block the same way in its own `params.rs`: inputs, then one
 //! line per parameter with the §11 row, then `copied`; its extra checks belong in a
@@ -449,7 +451,9 @@ macro_rules! stage_params {
 }
 
 /// The parts of one [`stage_params!`](crate::stage_params) parameter, from its own
-/// `{ paper "..", release ".." [, row ".."] }` or from a [`Shared`] declaration.
+/// `{ paper "..", release ".." [, row ".."] }` or from a [`Shared`] declaration. `doc` is a
+/// field's extra doc line: a link to the [`Shared`] constant, empty for the others (clap reads
+/// only literal doc lines, so it does not change the help).
 #[doc(hidden)]
 #[macro_export]
 macro_rules! __stage_param {
@@ -470,6 +474,9 @@ macro_rules! __stage_param {
     };
     (value $paper_profile:ident { shared $decl:path }) => {
         if $paper_profile { $decl.paper } else { $decl.release }
+    };
+    (parse [$parse:expr] { shared $decl:path }) => {
+        compile_error!(concat!("a shared parameter takes its parser from ", stringify!($decl)))
     };
     (parse [$parse:expr] { $($spec:tt)* }) => {
         $parse
