@@ -12,7 +12,7 @@ pub mod torch;
 
 use std::path::PathBuf;
 
-use crate::util::fs::IoError;
+use crate::util::fs::{IoError, PathError};
 
 /// Errors of reading or writing image and array files; each names the file.
 #[non_exhaustive]
@@ -22,13 +22,8 @@ pub enum Error {
     #[error(transparent)]
     Io(#[from] IoError),
     /// The image could not be decoded or encoded.
-    #[error("{}: {cause}", path.display())]
-    Image {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        cause: image::ImageError,
-    },
+    #[error(transparent)]
+    Image(#[from] PathError<image::ImageError>),
     /// A malformed `.npy` file or an unsupported dtype or shape.
     #[error("{}: {msg}", path.display())]
     Npy {

@@ -6,8 +6,8 @@ use std::path::Path;
 
 use image::ImageEncoder;
 
-use super::{Error, Result};
-use crate::util::fs::{IoError, write_atomic};
+use super::Result;
+use crate::util::fs::{IoError, PathError, write_atomic};
 
 /// A float image `[H, W, C]`, values in [0, 1].
 #[derive(Debug, Clone, PartialEq)]
@@ -79,7 +79,7 @@ pub fn read_png(path: &Path) -> Result<Image> {
         .with_guessed_format()
         .map_err(IoError::at(path))?
         .decode()
-        .map_err(|source| Error::Image { path: path.into(), cause: source })?;
+        .map_err(PathError::at(path))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let (channels, data) = match img.color().channel_count() {
         1 => (1, img.to_luma8().into_raw()),
@@ -108,7 +108,7 @@ pub fn write_png(path: &Path, img: &Image) -> Result<()> {
         image::codecs::png::FilterType::Adaptive,
     )
     .write_image(&img.to_u8(), img.width as u32, img.height as u32, color)
-    .map_err(|source| Error::Image { path: path.into(), cause: source })?;
+    .map_err(PathError::at(path))?;
     Ok(write_atomic(path, &buf)?)
 }
 

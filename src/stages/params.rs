@@ -5,7 +5,9 @@
 //!
 //! A stage parameter is declared once: its name, help, the parser of its command-line
 //! value, the paper and release values (spelled as on the command line, parsed by that
-//! same parser) and the row of official-release.md §11 it comes from:
+//! same parser) and, where it has one, the row of official-release.md §11 it comes from.
+//! Each parameter stands in the group of its `--help` heading (a heading may open several
+//! groups; clap lists the headings in the order they first appear):
 //!
 //! ```ignore
 //! stage_params! {
@@ -19,15 +21,19 @@
 //!         model: PathBuf,
 //!     }
 //!     params {
-//!         /// Colour-error threshold η_c, in (0, 1].
-//!         eta_c: f32 => f32 [check::unit] { paper "0.5", release "0.3", row "5", heading "Method" },
-//!         /// SSIM gate threshold, 0 for off.
-//!         ssim_gate: f32 => Option<f32> [check::finite32]
-//!             { paper "0", release "0.01", row "7", heading "Method" },
+//!         heading "Method" {
+//!             /// Colour-error threshold η_c, in (0, 1].
+//!             eta_c: f32 => f32 [check::unit] { paper "0.5", release "0.3", row "5" },
+//!             /// SSIM gate threshold, 0 for off.
+//!             ssim_gate: f32 => Option<f32> [check::finite32] { paper "0", release "0.01" },
+//!             graph_scope: GraphScope => GraphScope { shared GRAPH_SCOPE },
+//!         }
 //!     }
 //!     copied {
-//!         /// Seed of the random picks.
-//!         seed: u64 [check::parsed] { default "0", heading "Method" },
+//!         heading "Method" {
+//!             /// Seed of the random picks.
+//!             seed: u64 [check::parsed] { default "0" },
+//!         }
 //!     }
 //! }
 //! ```
@@ -41,7 +47,10 @@
 //! unchanged, or `0` meaning "off" (`None`) where the settings type is an `Option`. Both
 //! structs serialise in declaration order with kebab-case names (the tables' provenance
 //! records both). `copied` fields (e.g. a seed) have one value whatever the profile and go
-//! to the settings unchanged.
+//! to the settings unchanged. A parameter that several stages take with one meaning
+//! (`graph-scope`) is a [`Shared`] constant, which holds its help, parser and values, and
+//! each stage names it with `{ shared NAME }`, without doc lines or parser (either is a
+//! compile error, so neither can silently differ from the constant's).
 //!
 //! A new stage declares its block the same way in its own `params.rs`: inputs, then one
 //! line per parameter with the §11 row, then `copied`; its extra checks belong in a
@@ -288,6 +297,22 @@ pub fn help(doc: &[&str], paper: &str, release: &str, row: &str) -> String {
     format!("{} [paper {paper}, release {release}{row}]", text.trim_end_matches('.'))
 }
 
+/// A parameter that several stages take with one meaning and the same values, declared
+/// once as a `const` beside its type and included in each stage's block with
+/// `{ shared NAME }` (see the module doc).
+pub struct Shared<C: 'static> {
+    /// Its help, in lines (as a declaration's doc lines).
+    pub doc: &'static [&'static str],
+    /// The parser of its command-line value.
+    pub parse: fn(&str) -> Result<C, String>,
+    /// The paper profile's value, spelled as on the command line.
+    pub paper: &'static str,
+    /// The release profile's value, spelled as on the command line.
+    pub release: &'static str,
+    /// The row of official-release.md §11 it comes from (empty for none).
+    pub row: &'static str,
+}
+
 /// One declaration per stage parameter generates the stage's clap arguments, its settings,
 /// their defaults per profile and their resolution (see the module doc for an example).
 #[macro_export]
@@ -305,19 +330,22 @@ macro_rules! stage_params {
         }
         params {
             $(
-                $(#[doc = $doc:literal])*
-                $name:ident: $cty:ty => $sty:ty [$parse:expr] {
-                    paper $paper:literal, release $release:literal,
-                    row $row:literal, heading $heading:literal $(,)?
-                },
+                heading $heading:literal {
+                    $(
+                        $(#[doc = $doc:literal])*
+                        $name:ident: $cty:ty => $sty:ty $([$parse:expr])? { $($spec:tt)* },
+                    )*
+                }
             )*
         }
         copied {
             $(
-                $(#[doc = $cdoc:literal])*
-                $cname:ident: $ccty:ty [$cparse:expr] {
-                    default $cdefault:literal, heading $cheading:literal $(,)?
-                },
+                heading $cheading:literal {
+                    $(
+                        $(#[doc = $cdoc:literal])*
+                        $cname:ident: $ccty:ty [$cparse:expr] { default $cdefault:literal },
+                    )*
+                }
             )*
         }
     ) => {
@@ -332,17 +360,22 @@ macro_rules! stage_params {
             /// Which defaults the unset parameters take.
             #[arg(long, value_enum, default_value_t = $crate::stages::params::Profile::Paper, help_heading = "Method")]
             pub profile: $crate::stages::params::Profile,
-            $(
+            $($(
                 $(#[doc = $doc])*
+                #[doc = $crate::__stage_param!(doc { $($spec)* })]
                 #[arg(
                     long,
-                    value_parser = { let f: fn(&str) -> Result<$cty, String> = $parse; f },
-                    help = $crate::stages::params::help(&[$($doc),*], $paper, $release, $row),
+                    value_parser = {
+                        let f: fn(&str) -> Result<$cty, String> =
+                            $crate::__stage_param!(parse [$($parse)?] { $($spec)* });
+                        f
+                    },
+                    help = $crate::__stage_param!(help [$($doc)*] { $($spec)* }),
                     help_heading = $heading
                 )]
                 pub $name: Option<$cty>,
-            )*
-            $(
+            )*)*
+            $($(
                 $(#[doc = $cdoc])*
                 #[arg(
                     long,
@@ -351,7 +384,7 @@ macro_rules! stage_params {
                     help_heading = $cheading
                 )]
                 pub $cname: $ccty,
-            )*
+            )*)*
         }
 
         $(#[doc = $sdoc])*
@@ -360,14 +393,15 @@ macro_rules! stage_params {
         pub struct $settings {
             /// The profile the defaults came from.
             pub profile: $crate::stages::params::Profile,
-            $(
+            $($(
                 $(#[doc = $doc])*
+                #[doc = $crate::__stage_param!(doc { $($spec)* })]
                 pub $name: $sty,
-            )*
-            $(
+            )*)*
+            $($(
                 $(#[doc = $cdoc])*
                 pub $cname: $ccty,
-            )*
+            )*)*
         }
 
         impl $settings {
@@ -377,20 +411,20 @@ macro_rules! stage_params {
                 let paper = profile == $crate::stages::params::Profile::Paper;
                 $settings {
                     profile,
-                    $(
+                    $($(
                         $name: $crate::stages::params::declared::<$cty, $sty>(
                             stringify!($name),
-                            if paper { $paper } else { $release },
-                            $parse,
+                            $crate::__stage_param!(value paper { $($spec)* }),
+                            $crate::__stage_param!(parse [$($parse)?] { $($spec)* }),
                         ),
-                    )*
-                    $(
+                    )*)*
+                    $($(
                         $cname: $crate::stages::params::declared::<$ccty, $ccty>(
                             stringify!($cname),
                             $cdefault,
                             $cparse,
                         ),
-                    )*
+                    )*)*
                 }
             }
         }
@@ -401,18 +435,54 @@ macro_rules! stage_params {
                 let d = $settings::defaults(self.profile);
                 Ok($settings {
                     profile: self.profile,
-                    $(
+                    $($(
                         $name: match &self.$name {
                             Some(v) => $crate::stages::params::FromGiven::from_given(v.clone()),
                             None => d.$name,
                         },
-                    )*
-                    $(
+                    )*)*
+                    $($(
                         $cname: self.$cname.clone(),
-                    )*
+                    )*)*
                 })
             }
         }
+    };
+}
+
+/// The parts of one [`stage_params!`](crate::stage_params) parameter, from its own
+/// `{ paper "..", release ".." [, row ".."] }` or from a [`Shared`] declaration. `doc` is a
+/// field's extra doc line: a link to the [`Shared`] constant, empty for the others (clap reads
+/// only literal doc lines, so it does not change the help).
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __stage_param {
+    (doc { shared $decl:path }) => {
+        concat!("Declared once for the stages that take it: [`", stringify!($decl), "`].")
+    };
+    (doc { $($spec:tt)* }) => {
+        ""
+    };
+    (help [$($doc:literal)*] { paper $paper:literal, release $release:literal $(, row $row:literal)? $(,)? }) => {
+        $crate::stages::params::help(&[$($doc),*], $paper, $release, concat!("" $(, $row)?))
+    };
+    (help [] { shared $decl:path }) => {
+        $crate::stages::params::help($decl.doc, $decl.paper, $decl.release, $decl.row)
+    };
+    (value $paper_profile:ident { paper $paper:literal, release $release:literal $(, row $row:literal)? $(,)? }) => {
+        if $paper_profile { $paper } else { $release }
+    };
+    (value $paper_profile:ident { shared $decl:path }) => {
+        if $paper_profile { $decl.paper } else { $decl.release }
+    };
+    (parse [$parse:expr] { shared $decl:path }) => {
+        compile_error!(concat!("a shared parameter takes its parser from ", stringify!($decl)))
+    };
+    (parse [$parse:expr] { $($spec:tt)* }) => {
+        $parse
+    };
+    (parse [] { shared $decl:path }) => {
+        $decl.parse
     };
 }
 

@@ -27,7 +27,7 @@ use parquet::file::serialized_reader::SerializedPageReader;
 
 use super::pages::CheckedPages;
 use super::{Error, Result};
-use crate::util::fs::IoError;
+use crate::util::fs::{IoError, PathError};
 
 /// Metadata key naming the table kind (e.g. `trajectories`).
 pub const KEY_TABLE: &str = "usplat4d.table";
@@ -140,14 +140,14 @@ impl TableWriter {
             .set_max_row_group_bytes(None)
             .set_created_by(format!("usplat4d {}", crate::VERSION))
             .build();
-        let writer = ArrowWriter::try_new(file, schema.clone(), Some(props))
-            .map_err(|source| Error::Parquet { path: path.to_path_buf(), cause: source })?;
+        let writer =
+            ArrowWriter::try_new(file, schema.clone(), Some(props)).map_err(PathError::at(path))?;
         Ok(TableWriter { path: path.to_path_buf(), tmp, writer, schema })
     }
 
     /// Write `batch` as one row group (one frame of a per-frame table).
     pub fn write_group(&mut self, batch: &RecordBatch) -> Result<()> {
-        let pq = |source| Error::Parquet { path: self.path.clone(), cause: source };
+        let pq = PathError::at(&self.path);
         if batch.schema().fields() != self.schema.fields() {
             return Err(Error::Schema {
                 path: self.path.clone(),
@@ -163,9 +163,7 @@ impl TableWriter {
     /// Close the file and rename it into place.
     pub fn finish(self) -> Result<()> {
         let path = self.path;
-        self.writer
-            .close()
-            .map_err(|source| Error::Parquet { path: path.clone(), cause: source })?;
+        self.writer.close().map_err(PathError::at(&path))?;
         self.tmp.as_file().sync_all().map_err(IoError::at(&path))?;
         self.tmp.persist(&path).map_err(|e| IoError { path: path.clone(), cause: e.error })?;
         Ok(())
@@ -353,11 +351,9 @@ impl<R: Source> TableReader<R> {
         let schema = arrow::array::RecordBatchReader::schema(&reader);
         let mut batches = Vec::new();
         for b in reader {
-            batches
-                .push(b.map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })?);
+            batches.push(b.map_err(PathError::at(&self.path))?);
         }
-        arrow::compute::concat_batches(&schema, &batches)
-            .map_err(|source| Error::Arrow { path: self.path.clone(), cause: source })
+        Ok(arrow::compute::concat_batches(&schema, &batches).map_err(PathError::at(&self.path))?)
     }
 
     /// All rows as one batch.
@@ -381,7 +377,7 @@ impl<R: Source> TableReader<R> {
 /// Load the footer of the Parquet file `source` (`path` names it in errors) and check that
 /// every column chunk lies inside the file, before anything is decoded.
 pub fn load_metadata<R: ChunkReader>(path: &Path, source: &R) -> Result<ArrowReaderMetadata> {
-    let pq = |cause| Error::Parquet { path: path.to_path_buf(), cause };
+    let pq = PathError::at(path);
     let corrupt = |msg: String| Error::Corrupt { path: path.to_path_buf(), msg };
     let len = source.len();
     if source.get_bytes(0, 4.min(len as usize)).map_err(pq)?.as_ref() != b"PAR1" {
@@ -424,7 +420,7 @@ pub fn read_row_groups<R: ChunkReader + 'static>(
     groups: Vec<usize>,
     batch_size: usize,
 ) -> Result<ParquetRecordBatchReader> {
-    let pq = |cause| Error::Parquet { path: path.to_path_buf(), cause };
+    let pq = PathError::at(path);
     let levels = parquet_to_arrow_field_levels(
         meta.parquet_schema(),
         ProjectionMask::all(),
@@ -432,8 +428,8 @@ pub fn read_row_groups<R: ChunkReader + 'static>(
     )
     .map_err(pq)?;
     let row_groups = CheckedRowGroups { source: Arc::new(source), meta: meta.metadata(), groups };
-    ParquetRecordBatchReader::try_new_with_row_groups(&levels, &row_groups, batch_size, None)
-        .map_err(pq)
+    Ok(ParquetRecordBatchReader::try_new_with_row_groups(&levels, &row_groups, batch_size, None)
+        .map_err(pq)?)
 }
 
 /// Row groups of a file whose column chunks are read through [`CheckedPages`].

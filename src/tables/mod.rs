@@ -28,7 +28,7 @@ use std::path::PathBuf;
 
 use arrow::datatypes::SchemaRef;
 
-use crate::util::fs::IoError;
+use crate::util::fs::{IoError, PathError};
 
 pub use io::{Provenance, Table, TableReader, TableWriter};
 
@@ -40,21 +40,11 @@ pub enum Error {
     #[error(transparent)]
     Io(#[from] IoError),
     /// The Parquet layer failed (not a Parquet file, truncated, corrupt).
-    #[error("{}: {cause}", path.display())]
-    Parquet {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        cause: parquet::errors::ParquetError,
-    },
+    #[error(transparent)]
+    Parquet(#[from] PathError<parquet::errors::ParquetError>),
     /// The Arrow layer failed while assembling or decoding a batch.
-    #[error("{}: {cause}", path.display())]
-    Arrow {
-        /// The file.
-        path: PathBuf,
-        /// The underlying error.
-        cause: arrow::error::ArrowError,
-    },
+    #[error(transparent)]
+    Arrow(#[from] PathError<arrow::error::ArrowError>),
     /// Not a Parquet file, or one whose footer describes pages outside the file.
     #[error("{}: {msg}", path.display())]
     Corrupt {

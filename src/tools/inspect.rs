@@ -10,6 +10,7 @@ use arrow::datatypes::DataType;
 use crate::context::Context;
 use crate::tables::Error;
 use crate::tables::io::type_name;
+use crate::util::fs::PathError;
 
 /// Parameters of `usplat4d inspect`.
 #[derive(Debug, Clone, clap::Args, serde::Deserialize, serde::Serialize)]
@@ -125,7 +126,7 @@ pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> 
     let mut first: Vec<RecordBatch> = Vec::new();
     let mut taken = 0;
     for b in reader {
-        let b = b.map_err(|source| Error::Arrow { path: path.to_path_buf(), cause: source })?;
+        let b = b.map_err(PathError::at(path))?;
         for (s, c) in columns.iter_mut().zip(b.columns()) {
             s.update(c);
         }
@@ -137,7 +138,7 @@ pub fn summarize(path: &std::path::Path, head: usize) -> Result<Summary, Error> 
     }
     let head = arrow::util::pretty::pretty_format_batches(&first)
         .map(|t| t.to_string())
-        .map_err(|source| Error::Arrow { path: path.to_path_buf(), cause: source })?;
+        .map_err(PathError::at(path))?;
     let metadata = meta
         .file_metadata()
         .key_value_metadata()

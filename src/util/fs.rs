@@ -3,25 +3,29 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// An I/O error naming its path: the file (or its directory, when the directory or a
-/// temporary file could not be created) and the cause, displayed as `path: cause`. The cause
-/// is in the message, not chained, so `{:#}` prints it once. The typed error enums of the
-/// layers wrap it as their `Io` variant.
+/// An error of a file and its path, displayed as `path: cause`: the cause is in the message,
+/// not chained, so `{:#}` prints it once. The typed error enums of the layers wrap it as
+/// their variants for the libraries they call on a file ([`IoError`], Parquet, Arrow,
+/// image).
 #[derive(Debug, thiserror::Error)]
 #[error("{}: {cause}", path.display())]
-pub struct IoError {
+pub struct PathError<E> {
     /// The file or directory.
     pub path: PathBuf,
     /// The underlying error.
-    pub cause: std::io::Error,
+    pub cause: E,
 }
 
-impl IoError {
+impl<E> PathError<E> {
     /// The error of `path`, for `map_err`: `File::open(p).map_err(IoError::at(p))?`.
-    pub fn at<P: AsRef<Path> + ?Sized>(path: &P) -> impl Fn(std::io::Error) -> IoError + Copy {
-        move |cause| IoError { path: path.as_ref().to_path_buf(), cause }
+    pub fn at<P: AsRef<Path> + ?Sized>(path: &P) -> impl Fn(E) -> PathError<E> + Copy {
+        move |cause| PathError { path: path.as_ref().to_path_buf(), cause }
     }
 }
+
+/// An I/O error naming its path: the file, or its directory when the directory or a
+/// temporary file could not be created.
+pub type IoError = PathError<std::io::Error>;
 
 /// Write `bytes` to `path` through a temporary file in the same directory and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {

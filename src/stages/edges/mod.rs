@@ -56,7 +56,9 @@ use rayon::prelude::*;
 
 use super::graph::metric::{MetricForm, apply};
 use super::graph::search::{self, FrameQuery, KeyFrames};
-use super::graph::tracks::{GraphScope, ScopedTracks, Tracks};
+use super::graph::tracks::{
+    GRAPH_SCOPE, GraphInputs, GraphScope, ScopedTracks, Tracks, bbox_diagonal,
+};
 use super::params::check;
 use crate::context::Context;
 use crate::tables::edges::{EdgeKind, Edges};
@@ -123,12 +125,10 @@ crate::stage_params! {
     /// Concrete settings of edge construction (recorded in the table's provenance).
     pub struct EdgeSettings;
     inputs {
-        /// Model directory (gaussians.parquet + trajectories.parquet).
-        #[arg(long, value_name = "MODEL_DIR")]
-        model: PathBuf,
-        /// Directory holding uncertainty.parquet.
-        #[arg(long, value_name = "DIR")]
-        uncertainty: PathBuf,
+        /// The model and its uncertainty table.
+        #[command(flatten)]
+        #[serde(flatten)]
+        graph: GraphInputs,
         /// Directory holding key_nodes.parquet.
         #[arg(long, value_name = "DIR")]
         keynodes: PathBuf,
@@ -141,50 +141,45 @@ crate::stage_params! {
         scene: Option<PathBuf>,
     }
     params {
-        /// Gaussians taken into the graph (dynamic, all): keys and non-keys outside it get
-        /// no edges and are nobody's neighbour.
-        graph_scope: GraphScope => GraphScope [check::choice]
-            { paper "dynamic", release "dynamic", row "3", heading "Method" },
-        /// Key → key mode (ua-knn, euclidean, minmax-distance, max-contrib, max-native).
-        key_edge_mode: KeyEdgeMode => KeyEdgeMode [check::choice]
-            { paper "ua-knn", release "minmax-distance", row "26", heading "Method" },
-        /// Neighbours per key.
-        key_knn_k: usize => usize [check::count]
-            { paper "8", release "120", row "25", heading "Method" },
-        /// Fill of keys with fewer than k qualifying neighbours (nearest, first-keys, none).
-        key_knn_fill: KeyKnnFill => KeyKnnFill [check::choice]
-            { paper "nearest", release "first-keys", row "25", heading "Method" },
-        /// Key edge weights (rigidity, uniform).
-        key_edge_weights: KeyEdgeWeights => KeyEdgeWeights [check::choice]
-            { paper "uniform", release "uniform", row "27", heading "Method" },
-        /// β of the rigidity weights exp(−β·cv²).
-        rigidity_sharpness: f64 => f64 [check::parsed]
-            { paper "50", release "50", row "", heading "Method" },
-        /// Non-key assignment (argmin-sum-mahalanobis, knn-max-dist).
-        nonkey_assign_mode: NonkeyAssignMode => NonkeyAssignMode [check::choice]
-            { paper "argmin-sum-mahalanobis", release "knn-max-dist", row "30", heading "Method" },
-        /// Keys per non-key in `knn-max-dist`.
-        nonkey_k: usize => usize [check::count]
-            { paper "5", release "5", row "31", heading "Method" },
-        /// λ of the non-key weights exp(−λ d²).
-        nonkey_weight_sharpness: f64 => f64 [check::parsed]
-            { paper "100", release "100", row "32", heading "Method" },
-        /// Scale normalisation (paper App. "Adaptation": unify the spatial volume, normalise
-        /// the thresholds): u of Eqs. 7-8 divided by the keys' median reliable u, and the
-        /// distances of the non-key weights by the graph's bounding-box diagonal (over all
-        /// frames), so that scene scale and image resolution do not change the graph.
-        scale_normalise: bool => bool [check::parsed]
-            { paper "true", release "false", row "32", heading "Method" },
-        /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
-        /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) (unused by the release's edges).
-        metric_form: MetricForm => MetricForm [check::choice]
-            { paper "weight", release "inverse", row "16", heading "Method" },
-        /// Anisotropy r_x,r_y,r_z of Eq. 6 (unused by the release's edges).
-        r_xyz: [f64; 3] => [f64; 3] [check::triple]
-            { paper "1,1,0.01", release "1,1,0.1", row "15", heading "Method" },
-        /// Confidence mask of the release modes: normalised contribution > c, i.e. u < 1/c.
-        contrib_threshold: f32 => f32 [check::positive]
-            { paper "2", release "2", row "14", heading "Method" },
+        heading "Method" {
+            graph_scope: GraphScope => GraphScope { shared GRAPH_SCOPE },
+            /// Key → key mode (ua-knn, euclidean, minmax-distance, max-contrib, max-native).
+            key_edge_mode: KeyEdgeMode => KeyEdgeMode [check::choice]
+                { paper "ua-knn", release "minmax-distance", row "26" },
+            /// Neighbours per key.
+            key_knn_k: usize => usize [check::count] { paper "8", release "120", row "25" },
+            /// Fill of keys with fewer than k qualifying neighbours (nearest, first-keys, none).
+            key_knn_fill: KeyKnnFill => KeyKnnFill [check::choice]
+                { paper "nearest", release "first-keys", row "25" },
+            /// Key edge weights (rigidity, uniform).
+            key_edge_weights: KeyEdgeWeights => KeyEdgeWeights [check::choice]
+                { paper "uniform", release "uniform", row "27" },
+            /// β of the rigidity weights exp(−β·cv²).
+            rigidity_sharpness: f64 => f64 [check::parsed] { paper "50", release "50" },
+            /// Non-key assignment (argmin-sum-mahalanobis, knn-max-dist).
+            nonkey_assign_mode: NonkeyAssignMode => NonkeyAssignMode [check::choice]
+                { paper "argmin-sum-mahalanobis", release "knn-max-dist", row "30" },
+            /// Keys per non-key in `knn-max-dist`.
+            nonkey_k: usize => usize [check::count] { paper "5", release "5", row "31" },
+            /// λ of the non-key weights exp(−λ d²).
+            nonkey_weight_sharpness: f64 => f64 [check::parsed]
+                { paper "100", release "100", row "32" },
+            /// Scale normalisation (paper App. "Adaptation": unify the spatial volume, normalise
+            /// the thresholds): u of Eqs. 7-8 divided by the keys' median reliable u, and the
+            /// distances of the non-key weights by the graph's bounding-box diagonal (over all
+            /// frames), so that scene scale and image resolution do not change the graph.
+            scale_normalise: bool => bool [check::parsed]
+                { paper "true", release "false", row "32" },
+            /// Form of the norm ‖δ‖_{(U_i + U_j)} of Eqs. 7-8: `weight` = √(δᵀ(U_i+U_j)δ), the
+            /// paper's notation; `inverse` = √(δᵀ(U_i+U_j)⁻¹δ) (unused by the release's edges).
+            metric_form: MetricForm => MetricForm [check::choice]
+                { paper "weight", release "inverse", row "16" },
+            /// Anisotropy r_x,r_y,r_z of Eq. 6 (unused by the release's edges).
+            r_xyz: [f64; 3] => [f64; 3] [check::triple]
+                { paper "1,1,0.01", release "1,1,0.1", row "15" },
+            /// Confidence mask of the release modes: normalised contribution > c, i.e. u < 1/c.
+            contrib_threshold: f32 => f32 [check::positive] { paper "2", release "2", row "14" },
+        }
     }
     copied {}
 }
@@ -209,7 +204,7 @@ pub const GRAPH_KEY: &str = "usplat4d.graph";
 /// key-edge start weights, the graph scope, and where the non-keys' DQB source poses come
 /// from (their pose at t̂, `key_nodes.t_hat`, in the model).
 pub fn graph_metadata(s: &EdgeSettings, tracks: &Tracks) -> serde_json::Value {
-    let diag = diagonal(&tracks.positions);
+    let diag = bbox_diagonal(&tracks.positions);
     let unit = if s.scale_normalise && diag > 0.0 { diag } else { 1.0 };
     serde_json::json!({
         "r-xyz": s.r_xyz,
@@ -330,7 +325,7 @@ pub fn build_with_report(
                 *u *= u_norm;
             }
         }
-        let diag = diagonal(&tracks.positions);
+        let diag = bbox_diagonal(&tracks.positions);
         // graph_metadata records the same unit
         let scale = if diag > 0.0 { 1.0 / (diag * diag) } else { 1.0 };
         (u_norm, s.nonkey_weight_sharpness * scale)
@@ -525,18 +520,6 @@ fn keys_in_scope(keys: &KeyNodes, scoped: &ScopedTracks) -> Result<KeyNodes, Edg
     })
 }
 
-/// Diagonal of the axis-aligned bounding box of `p`.
-fn diagonal(p: &[[f32; 3]]) -> f64 {
-    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    for q in p {
-        for k in 0..3 {
-            lo[k] = lo[k].min(q[k] as f64);
-            hi[k] = hi[k].max(q[k] as f64);
-        }
-    }
-    (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f64>().sqrt()
-}
-
 /// One key's `[T]` positions, u and eligibility.
 type KeyColumns = (Vec<[f32; 3]>, Vec<f32>, Vec<bool>);
 
@@ -607,9 +590,7 @@ pub fn run(p: &EdgeParams, ctx: &Context) -> anyhow::Result<()> {
     use crate::tables::Table;
     let _span = tracing::info_span!("edges").entered();
     let settings = p.resolve()?;
-    let model = crate::model::Model::load(&p.model)?;
-    let unc = p.uncertainty.join(crate::tables::uncertainty::UncertaintyTable::file_name());
-    let scoped = super::graph::tracks::load_tracks(&model, &unc, settings.graph_scope, ctx)?;
+    let (model, scoped) = p.graph.load(settings.graph_scope, ctx)?;
     let tracks = &scoped.tracks;
     let key_path = p.keynodes.join(crate::tables::key_nodes::KeyNodesTable::file_name());
     let keys = keys_in_scope(&crate::tables::key_nodes::read(&key_path)?, &scoped)

@@ -5,12 +5,14 @@
 //! Memory: `N·T·(12 + 4 + 1)` bytes (positions, u, reliable flag); for N = 200,000
 //! Gaussians and T = 475 frames that is 1.6 GB, the largest array of the graph stages.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DQuat, DVec3};
 
 use crate::model::Model;
-use crate::tables::uncertainty::UncertaintyReader;
+use crate::stages::params::{Shared, check};
+use crate::tables::Table;
+use crate::tables::uncertainty::{UncertaintyReader, UncertaintyTable};
 use crate::util::rng::Rng;
 
 /// Positions and uncertainties of the graph's Gaussians over all frames, Gaussian-major.
@@ -84,6 +86,31 @@ pub enum GraphScope {
     All,
 }
 
+/// `--graph-scope` of `keynodes` and `edges`, declared once for both (profile row 3).
+pub const GRAPH_SCOPE: Shared<GraphScope> = Shared {
+    doc: &[
+        "Gaussians taken into the graph (dynamic, all): the others get the key-node role",
+        "`unlinked`, no edges, and are nobody's neighbour.",
+    ],
+    parse: check::choice,
+    paper: "dynamic",
+    release: "dynamic",
+    row: "3",
+};
+
+/// Diagonal of the axis-aligned bounding box of the positions `p` `[N, 3]` (0 for none).
+pub fn bbox_diagonal(p: &[[f32; 3]]) -> f64 {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for q in p {
+        for k in 0..3 {
+            lo[k] = lo[k].min(q[k] as f64);
+            hi[k] = hi[k].max(q[k] as f64);
+        }
+    }
+    (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f64>().sqrt()
+}
+
 /// The tracks of the Gaussians in a [`GraphScope`], and where they sit in the uncertainty
 /// table.
 #[derive(Debug, Clone)]
@@ -94,6 +121,32 @@ pub struct ScopedTracks {
     pub table_ids: Vec<u32>,
     /// Row in the uncertainty table of each in-scope Gaussian `[N]`, ascending.
     pub table_rows: Vec<usize>,
+}
+
+/// What the graph stages (`keynodes`, `edges`) read the graph's Gaussians from: a model and
+/// its uncertainty table.
+#[derive(Debug, Clone, clap::Args, serde::Serialize)]
+pub struct GraphInputs {
+    /// Model directory (gaussians.parquet + trajectories.parquet).
+    #[arg(long, value_name = "MODEL_DIR")]
+    pub model: PathBuf,
+    /// Directory holding uncertainty.parquet.
+    #[arg(long, value_name = "DIR")]
+    pub uncertainty: PathBuf,
+}
+
+impl GraphInputs {
+    /// Load the model, and the tracks of its Gaussians in `scope` ([`load_tracks`]).
+    pub fn load(
+        &self,
+        scope: GraphScope,
+        ctx: &crate::context::Context,
+    ) -> anyhow::Result<(Model, ScopedTracks)> {
+        let model = Model::load(&self.model)?;
+        let unc = self.uncertainty.join(UncertaintyTable::file_name());
+        let scoped = load_tracks(&model, &unc, scope, ctx)?;
+        Ok((model, scoped))
+    }
 }
 
 /// Load the tracks of the Gaussians of `uncertainty_file` in `scope` from `model`, frame by

@@ -67,7 +67,9 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
-use super::graph::tracks::{GraphScope, ScopedTracks, Tracks};
+use super::graph::tracks::{
+    GRAPH_SCOPE, GraphInputs, GraphScope, ScopedTracks, Tracks, bbox_diagonal,
+};
 use super::params::{Amount, check};
 use crate::context::Context;
 use crate::tables::key_nodes::{KeyNodes, Role};
@@ -238,69 +240,70 @@ crate::stage_params! {
     /// Concrete settings of key-node selection (recorded in the table's provenance).
     pub struct KeynodeSettings;
     inputs {
-        /// Model directory (gaussians.parquet + trajectories.parquet).
-        #[arg(long, value_name = "MODEL_DIR")]
-        model: PathBuf,
-        /// Directory holding uncertainty.parquet.
-        #[arg(long, value_name = "DIR")]
-        uncertainty: PathBuf,
+        /// The model and its uncertainty table.
+        #[command(flatten)]
+        #[serde(flatten)]
+        graph: GraphInputs,
         /// Output directory (key_nodes.parquet).
         #[arg(long, value_name = "DIR")]
         out: PathBuf,
     }
     params {
-        /// Gaussians that may be keys or non-keys (dynamic, all); the others are `unlinked`.
-        graph_scope: GraphScope => GraphScope [check::choice]
-            { paper "dynamic", release "dynamic", row "3", heading "Method" },
-        /// Confident Gaussians per frame: a count or a percentage of N.
-        candidates_per_frame: Amount => Amount [check::share]
-            { paper "2%", release "1000", row "18", heading "Method" },
-        /// Voxel edge: world units, a percentage of the frame's bounding-box diagonal, or
-        /// `auto` (the finest edge whose keys fit `key-budget`).
-        voxel_size: VoxelSize => VoxelSize [check::parsed]
-            { paper "auto", release "0.2", row "19", heading "Method" },
-        /// Key count targeted by `voxel-size auto`: a count or a percentage of N (paper:
-        /// 1:49 key/non-key).
-        key_budget: Amount => Amount [check::share]
-            { paper "2%", release "1500", row "23", heading "Method" },
-        /// Pick within a voxel (random, lowest-contribution).
-        voxel_pick: VoxelPick => VoxelPick [check::choice]
-            { paper "random", release "lowest-contribution", row "20", heading "Method" },
-        /// Candidate pool (uncertainty; ablation (a): uniform).
-        candidate_source: CandidateSource => CandidateSource [check::choice]
-            { paper "uncertainty", release "uncertainty", row "", heading "Ablations" },
-        /// Candidate thinning (voxel; ablation (d): random).
-        candidate_sampling: CandidateSampling => CandidateSampling [check::choice]
-            { paper "voxel", release "voxel", row "", heading "Ablations" },
-        /// Significant-period counting (consecutive, total).
-        spt_counting: SptCounting => SptCounting [check::choice]
-            { paper "consecutive", release "total", row "21", heading "Method" },
-        /// Upper cap on the per-frame significance threshold of u (release: 2, i.e.
-        /// normalised contribution 0.5; inf for none).
-        spt_u_max: f32 => f32 [check::parsed]
-            { paper "inf", release "2", row "22", heading "Method" },
-        /// Minimum significant period, frames.
-        min_significant_period: u32 => u32 [check::parsed]
-            { paper "5", release "5", row "", heading "Method" },
-        /// Cap on the number of keys, 0 for none.
-        max_key_nodes: usize => Option<usize> [check::parsed]
-            { paper "0", release "1500", row "23", heading "Method" },
-        /// Most non-keys kept in the graph: a count, `none`, or `by-frames` (36,000 if T > 350,
-        /// 72,000 if T > 40, else 150,000).
-        nonkey_cap: NonkeyCap => NonkeyCap [check::parsed]
-            { paper "none", release "by-frames", row "33", heading "Non-keys" },
-        /// A non-key stays in the graph only if its largest contribution max_t 1/u_{i,t}
-        /// exceeds this, 0 for no minimum.
-        nonkey_min_contrib: f64 => Option<f64> [check::non_negative]
-            { paper "0", release "0.01", row "34", heading "Non-keys" },
-        /// Non-keys left out of the graph: deleted at the start of training, or kept without
-        /// edges (keep, cull; the paper leaves none out).
-        unselected_nonkeys: UnselectedNonkeys => UnselectedNonkeys [check::choice]
-            { paper "keep", release "cull", row "35", heading "Non-keys" },
+        heading "Method" {
+            graph_scope: GraphScope => GraphScope { shared GRAPH_SCOPE },
+            /// Confident Gaussians per frame: a count or a percentage of N.
+            candidates_per_frame: Amount => Amount [check::share]
+                { paper "2%", release "1000", row "18" },
+            /// Voxel edge: world units, a percentage of the frame's bounding-box diagonal, or
+            /// `auto` (the finest edge whose keys fit `key-budget`).
+            voxel_size: VoxelSize => VoxelSize [check::parsed]
+                { paper "auto", release "0.2", row "19" },
+            /// Key count targeted by `voxel-size auto`: a count or a percentage of N (paper:
+            /// 1:49 key/non-key).
+            key_budget: Amount => Amount [check::share] { paper "2%", release "1500", row "23" },
+            /// Pick within a voxel (random, lowest-contribution).
+            voxel_pick: VoxelPick => VoxelPick [check::choice]
+                { paper "random", release "lowest-contribution", row "20" },
+            /// Significant-period counting (consecutive, total).
+            spt_counting: SptCounting => SptCounting [check::choice]
+                { paper "consecutive", release "total", row "21" },
+            /// Upper cap on the per-frame significance threshold of u (release: 2, i.e.
+            /// normalised contribution 0.5; inf for none).
+            spt_u_max: f32 => f32 [check::parsed] { paper "inf", release "2", row "22" },
+            /// Minimum significant period, frames.
+            min_significant_period: u32 => u32 [check::parsed] { paper "5", release "5" },
+            /// Cap on the number of keys, 0 for none.
+            max_key_nodes: usize => Option<usize> [check::parsed]
+                { paper "0", release "1500", row "23" },
+        }
+        heading "Ablations" {
+            /// Candidate pool (uncertainty; ablation (a): uniform).
+            candidate_source: CandidateSource => CandidateSource [check::choice]
+                { paper "uncertainty", release "uncertainty" },
+            /// Candidate thinning (voxel; ablation (d): random).
+            candidate_sampling: CandidateSampling => CandidateSampling [check::choice]
+                { paper "voxel", release "voxel" },
+        }
+        heading "Non-keys" {
+            /// Most non-keys kept in the graph: a count, `none`, or `by-frames` (36,000 if T > 350,
+            /// 72,000 if T > 40, else 150,000).
+            nonkey_cap: NonkeyCap => NonkeyCap [check::parsed]
+                { paper "none", release "by-frames", row "33" },
+            /// A non-key stays in the graph only if its largest contribution max_t 1/u_{i,t}
+            /// exceeds this, 0 for no minimum.
+            nonkey_min_contrib: f64 => Option<f64> [check::non_negative]
+                { paper "0", release "0.01", row "34" },
+            /// Non-keys left out of the graph: deleted at the start of training, or kept without
+            /// edges (keep, cull; the paper leaves none out).
+            unselected_nonkeys: UnselectedNonkeys => UnselectedNonkeys [check::choice]
+                { paper "keep", release "cull", row "35" },
+        }
     }
     copied {
-        /// Seed of the random picks.
-        seed: u64 [check::parsed] { default "0", heading "Method" },
+        heading "Method" {
+            /// Seed of the random picks.
+            seed: u64 [check::parsed] { default "0" },
+        }
     }
 }
 
@@ -648,29 +651,12 @@ fn in_table(keys: KeyNodes, scoped: &ScopedTracks) -> KeyNodes {
     out
 }
 
-/// Diagonal of the axis-aligned bounding box of `p`.
-fn bbox_diagonal(p: &[[f32; 3]]) -> f64 {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for q in p {
-        for k in 0..3 {
-            lo[k] = lo[k].min(q[k] as f64);
-            hi[k] = hi[k].max(q[k] as f64);
-        }
-    }
-    (0..3).map(|k| (hi[k] - lo[k]).max(0.0).powi(2)).sum::<f64>().sqrt()
-}
-
 /// `usplat4d keynodes`: read the model and the uncertainty table, select, write
 /// `OUT/key_nodes.parquet`.
 pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
     let _span = tracing::info_span!("keynodes").entered();
     let settings = p.resolve()?;
-    let model = crate::model::Model::load(&p.model)?;
-    let unc = p
-        .uncertainty
-        .join(<crate::tables::uncertainty::UncertaintyTable as crate::tables::Table>::file_name());
-    let scoped = super::graph::tracks::load_tracks(&model, &unc, settings.graph_scope, ctx)?;
+    let (_, scoped) = p.graph.load(settings.graph_scope, ctx)?;
     let tracks = &scoped.tracks;
     let (keys, mut report) = select_with_report(tracks, &settings);
     let keys = in_table(keys, &scoped);
@@ -697,7 +683,7 @@ pub fn run(p: &KeynodeParams, ctx: &Context) -> anyhow::Result<()> {
             "keynodes: no key node: no Gaussian of {} is reliable for a significant period \
              (the base model may be fitted too poorly, or the video is too short); the \
              usplat4d recipe then has no key anchors",
-            p.model.display()
+            p.graph.model.display()
         ));
     }
     let prov = crate::tables::Provenance::new(

@@ -31,7 +31,7 @@ use std::collections::HashMap;
 use glam::DMat3;
 use rayon::prelude::*;
 
-use super::motion::{self, EdgeGrad, EdgeSet, MotionForm, Track, TrackGrad};
+use super::motion::{self, EdgeGrad, EdgeSet, EdgeTerms, MotionForm, Track, TrackGrad};
 use super::nonkey_weights::NonkeyWeights;
 use super::poses::{PoseGrads, Poses};
 use super::smoothness;
@@ -808,42 +808,25 @@ impl GraphObjective {
                 );
                 out.push(("key_isometry", km * li * vi));
                 out.push(("key_rigidity", km * lr * vr));
-                let v = motion::relative_rotation(
-                    &track,
-                    es,
-                    1,
-                    per(1),
-                    km * lo,
-                    &mut tg,
-                    Some(&mut ge),
-                );
+                let terms =
+                    &mut EdgeTerms { track: &track, edges: es, g: &mut tg, g_edges: Some(&mut ge) };
+                let v = motion::relative_rotation(terms, 1, per(1), km * lo);
                 out.push(("key_rotation", km * lo * v));
             }
             MotionForm::Release => {
-                let v = motion::rigidity(&track, es, 1, mean(1), km, &mut tg, Some(&mut ge));
+                let terms =
+                    &mut EdgeTerms { track: &track, edges: es, g: &mut tg, g_edges: Some(&mut ge) };
+                let v = motion::rigidity(terms, 1, mean(1), km);
                 out.push(("key_rigidity", km * v));
-                let v =
-                    motion::relative_rotation(&track, es, 1, mean(1), km, &mut tg, Some(&mut ge));
+                let v = motion::relative_rotation(terms, 1, mean(1), km);
                 out.push(("key_rotation", km * v));
-                let v = motion::isometry(
-                    &track,
-                    es,
-                    &rest,
-                    mean(0),
-                    100.0 * km,
-                    &mut tg,
-                    Some(&mut ge),
-                );
+                let v = motion::isometry(terms, &rest, mean(0), 100.0 * km);
                 out.push(("key_isometry", 100.0 * km * v));
                 for (name, d, on) in [
                     ("key_rigidity_long", (nt / 2).min(50), nt > 40),
                     ("key_rigidity_10", 10, nt > 20),
                 ] {
-                    let v = if on {
-                        motion::rigidity(&track, es, d, mean(d), 100.0 * km, &mut tg, Some(&mut ge))
-                    } else {
-                        0.0
-                    };
+                    let v = if on { motion::rigidity(terms, d, mean(d), 100.0 * km) } else { 0.0 };
                     out.push((name, 100.0 * km * v));
                 }
             }

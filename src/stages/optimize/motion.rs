@@ -281,6 +281,20 @@ impl EdgeGrad {
     }
 }
 
+/// What the edge terms [`rigidity`], [`relative_rotation`] and [`isometry`] share: the track
+/// and its edges they are evaluated on, and the gradients they add to (the edges' when
+/// `g_edges` is given).
+pub struct EdgeTerms<'a> {
+    /// The Gaussians' poses.
+    pub track: &'a Track,
+    /// The edges over them.
+    pub edges: EdgeSet<'a>,
+    /// Gradients of the track.
+    pub g: &'a mut TrackGrad,
+    /// Gradients of the edges' weights and rest lengths, when wanted.
+    pub g_edges: Option<&'a mut EdgeGrad>,
+}
+
 /// Which variant of the velocity and acceleration terms (profile row 54).
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
@@ -406,23 +420,20 @@ impl Partial {
 /// adds frame t's value and gradients, tasks as [`frame_windows`] lays them out; returns the
 /// value, per-edge gradients added to `g_edges` in task order.
 fn offset_term(
-    track: &Track,
-    edges: EdgeSet,
+    on: &mut EdgeTerms,
     delta: usize,
-    g: &mut TrackGrad,
-    g_edges: Option<&mut EdgeGrad>,
     frame: impl Fn(&mut Partial, usize, usize, usize, &mut [[f64; GW]]) + Sync,
 ) -> f64 {
     assert!(delta >= 1, "offset Δ ≥ 1");
-    let (want_e, ne) = (g_edges.is_some(), edges.len());
-    let parts = frame_windows(g, track.frames, delta, track.first, |ts, base, rows| {
+    let (want_e, ne, track) = (on.g_edges.is_some(), on.edges.len(), on.track);
+    let parts = frame_windows(on.g, track.frames, delta, track.first, |ts, base, rows| {
         let mut part = Partial::new(want_e, ne, false);
         for t in ts {
             frame(&mut part, t - delta, t, base, rows);
         }
         part
     });
-    reduce(parts, g_edges)
+    reduce(parts, on.g_edges.as_deref_mut())
 }
 
 /// The runs of edges that share a source, `(source, its edges)` in edge order (edges
@@ -496,17 +507,9 @@ fn add_to(row: &mut [f64; GW], off: usize, v: &[f64]) {
 }
 
 /// Rigidity with offset Δ ≥ 1: `norm · Σ_{t=Δ}^{T−1} Σ_e w_e ‖d_e(t−Δ) − R_i(t−Δ) R_i(t)ᵀ d_e(t)‖`.
-pub fn rigidity(
-    track: &Track,
-    edges: EdgeSet,
-    delta: usize,
-    norm: f64,
-    scale: f64,
-    g: &mut TrackGrad,
-    g_edges: Option<&mut EdgeGrad>,
-) -> f64 {
-    let m = track.m;
-    offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
+pub fn rigidity(on: &mut EdgeTerms, delta: usize, norm: f64, scale: f64) -> f64 {
+    let (track, edges, m) = (on.track, on.edges, on.track.m);
+    offset_term(on, delta, |part, t0, t1, base, rows| {
         for (i, run) in by_source(edges.src) {
             let SourceMotion { a, b, c, rm, pi0, pi1 } = SourceMotion::of(track, i, t0, t1);
             let mut g_rm: M3 = [[0.0; 3]; 3];
@@ -540,17 +543,9 @@ pub fn rigidity(
 
 /// Relative rotation with offset Δ ≥ 1:
 /// `norm · Σ_{t=Δ}^{T−1} Σ_e w_e ‖q_j(t) q_j(t−Δ)* − q_i(t) q_i(t−Δ)*‖₂` (unit quaternions).
-pub fn relative_rotation(
-    track: &Track,
-    edges: EdgeSet,
-    delta: usize,
-    norm: f64,
-    scale: f64,
-    g: &mut TrackGrad,
-    g_edges: Option<&mut EdgeGrad>,
-) -> f64 {
-    let m = track.m;
-    offset_term(track, edges, delta, g, g_edges, |part, t0, t1, base, rows| {
+pub fn relative_rotation(on: &mut EdgeTerms, delta: usize, norm: f64, scale: f64) -> f64 {
+    let (track, edges, m) = (on.track, on.edges, on.track.m);
+    offset_term(on, delta, |part, t0, t1, base, rows| {
         // Each Gaussian's q(t) q(t−Δ)* once, and the gradient reaching it from all its
         // edges (the VJP of the product is linear: chained once per Gaussian).
         let ends = |k: usize| (track.u[track.at(t1, k)], track.u[track.at(t0, k)]);
@@ -585,16 +580,9 @@ pub fn relative_rotation(
 }
 
 /// Isometry: `norm · Σ_{t=0}^{T−1} Σ_e w_e |D_e − ‖d_e(t)‖|` with rest lengths `rest` `[E]`.
-pub fn isometry(
-    track: &Track,
-    edges: EdgeSet,
-    rest: &[f64],
-    norm: f64,
-    scale: f64,
-    g: &mut TrackGrad,
-    g_edges: Option<&mut EdgeGrad>,
-) -> f64 {
-    isometry_until(track, edges, rest, (norm, scale), track.frames, g, g_edges)
+pub fn isometry(on: &mut EdgeTerms, rest: &[f64], norm: f64, scale: f64) -> f64 {
+    let (track, edges) = (on.track, on.edges);
+    isometry_until(track, edges, rest, (norm, scale), track.frames, on.g, on.g_edges.as_deref_mut())
 }
 
 /// [`isometry`] at the frames before `end` only.
@@ -767,10 +755,11 @@ mod tests {
         let e = EdgeSet { src, dst, w };
         let mut g = TrackGrad::zeros(tr);
         let mut ge = EdgeGrad::zeros(src.len());
-        let mut v = rigidity(tr, e, 1, 0.3, 1.0, &mut g, Some(&mut ge));
-        v += 0.7 * rigidity(tr, e, 3, 0.2, 0.7, &mut g, Some(&mut ge));
-        v += relative_rotation(tr, e, 2, 0.5, 1.0, &mut g, Some(&mut ge));
-        v += isometry(tr, e, rest, 0.4, 1.0, &mut g, Some(&mut ge));
+        let on = &mut EdgeTerms { track: tr, edges: e, g: &mut g, g_edges: Some(&mut ge) };
+        let mut v = rigidity(on, 1, 0.3, 1.0);
+        v += 0.7 * rigidity(on, 3, 0.2, 0.7);
+        v += relative_rotation(on, 2, 0.5, 1.0);
+        v += isometry(on, rest, 0.4, 1.0);
         (v, g, ge)
     }
 
@@ -839,6 +828,21 @@ mod tests {
         poses
     }
 
+    /// `terms` on the gathered track of `nodes` over all frames: the values and the pose
+    /// gradients that a streamed evaluation must reproduce.
+    fn on_whole_track<const K: usize>(
+        poses: &Poses,
+        nodes: &[u32],
+        terms: impl Fn(&Track, &mut TrackGrad) -> [f64; K],
+    ) -> ([f64; K], PoseGrads) {
+        let whole = Track::gather(poses, nodes);
+        let mut g = TrackGrad::zeros(&whole);
+        let want = terms(&whole, &mut g);
+        let mut want_g = PoseGrads::zeros(poses.frames, poses.n);
+        g.scatter(&whole, nodes, poses.n, &mut want_g);
+        (want, want_g)
+    }
+
     #[test]
     fn streamed_frame_blocks_equal_the_whole_track() {
         let (t, m) = (23, 6);
@@ -847,18 +851,15 @@ mod tests {
         let poses = poses_of(&tr, n, &nodes);
         let e = EdgeSet { src: &src, dst: &dst, w: &w };
         let terms = |tr: &Track, g: &mut TrackGrad| {
+            let on = &mut EdgeTerms { track: tr, edges: e, g, g_edges: None };
             [
-                rigidity(tr, e, 1, 0.3, 1.0, g, None),
-                rigidity(tr, e, 3, 0.2, 0.7, g, None),
-                relative_rotation(tr, e, 2, 0.5, 1.0, g, None),
-                isometry(tr, e, &rest, 0.4, 1.0, g, None),
+                rigidity(on, 1, 0.3, 1.0),
+                rigidity(on, 3, 0.2, 0.7),
+                relative_rotation(on, 2, 0.5, 1.0),
+                isometry(on, &rest, 0.4, 1.0),
             ]
         };
-        let whole = Track::gather(&poses, &nodes);
-        let mut g = TrackGrad::zeros(&whole);
-        let want = terms(&whole, &mut g);
-        let mut want_g = PoseGrads::zeros(t, n);
-        g.scatter(&whole, &nodes, n, &mut want_g);
+        let (want, want_g) = on_whole_track(&poses, &nodes, terms);
         // blocks of 4 frames plus 3 frames of context, waves of at most 3 blocks
         let mut got_g = PoseGrads::zeros(t, n);
         let layout = (4 * m, 3 * 7 * m);
@@ -894,10 +895,8 @@ mod tests {
             let tr = Track { first, ..tr.clone() };
             let (mut g1, mut g2) = (TrackGrad::zeros(&tr), TrackGrad::zeros(&tr));
             let (mut e1, mut e2) = (EdgeGrad::zeros(src.len()), EdgeGrad::zeros(src.len()));
-            let want = [
-                isometry(&tr, e, &rest, iso.0, iso.1, &mut g1, Some(&mut e1)),
-                rigidity(&tr, e, 1, rig.0, rig.1, &mut g1, Some(&mut e1)),
-            ];
+            let on = &mut EdgeTerms { track: &tr, edges: e, g: &mut g1, g_edges: Some(&mut e1) };
+            let want = [isometry(on, &rest, iso.0, iso.1), rigidity(on, 1, rig.0, rig.1)];
             let got = isometry_rigidity(&tr, e, &rest, iso, rig, &mut g2, Some(&mut e2));
             assert!(close(got[0], want[0]) && close(got[1], want[1]), "{got:?} vs {want:?}");
             assert!(want[0] > 0.0 && want[1] > 0.0);
@@ -909,11 +908,7 @@ mod tests {
         // streamed in blocks of 4 frames with one frame of context
         let terms =
             |tr: &Track, g: &mut TrackGrad| isometry_rigidity(tr, e, &rest, iso, rig, g, None);
-        let whole = Track::gather(&poses, &nodes);
-        let mut g = TrackGrad::zeros(&whole);
-        let want = terms(&whole, &mut g);
-        let mut want_g = PoseGrads::zeros(t, n);
-        g.scatter(&whole, &nodes, n, &mut want_g);
+        let (want, want_g) = on_whole_track(&poses, &nodes, terms);
         let mut got_g = PoseGrads::zeros(t, n);
         let got = stream_frames_in(&poses, &nodes, 1, (4 * m, 3 * 5 * m), &mut got_g, terms);
         assert!(close(got[0], want[0]) && close(got[1], want[1]), "{got:?} vs {want:?}");

@@ -66,147 +66,131 @@ crate::stage_params! {
         no_loss_weighting: bool,
     }
     params {
-        /// Training frames per step, a seeded permutation per epoch.
-        batch_frames: usize => usize [check::parsed]
-            { paper "8", release "8", row "", heading "Method" },
-        /// Write a checkpoint (beside the output, `OUT.ckpt/`) every this many steps, 0 for
-        /// none; a run started again resumes from it.
-        checkpoint_every: u32 => Option<u32> [check::parsed]
-            { paper "100", release "100", row "", heading "Run" },
-        /// Learning rate of the per-frame positions (the paper gives none: the release's).
-        lr_position: f32 => f32 [check::parsed]
-            { paper "1.6e-4", release "1.6e-4", row "57", heading "Learning rates" },
-        /// Learning rate of the per-frame rotations.
-        lr_rotation: f32 => f32 [check::parsed]
-            { paper "5e-2", release "5e-2", row "57", heading "Learning rates" },
-        /// Learning rate of the log-scales (MoSca lr_s, official-release §5.3).
-        lr_scale: f32 => f32 [check::parsed]
-            { paper "5e-3", release "5e-3", row "", heading "Learning rates" },
-        /// Learning rate of the opacity logits (MoSca lr_o).
-        lr_opacity: f32 => f32 [check::parsed]
-            { paper "5e-2", release "5e-2", row "", heading "Learning rates" },
-        /// Learning rate of the degree-0 colour (MoSca lr_sph).
-        lr_color: f32 => f32 [check::parsed]
-            { paper "2.5e-3", release "2.5e-3", row "", heading "Learning rates" },
-        /// Learning rate of the higher SH coefficients (MoSca lr_sph / 20, 2.5e-3 / 20 in
-        /// f32).
-        lr_sh_rest: f32 => f32 [check::parsed]
-            { paper "1.2499999e-4", release "1.2499999e-4", row "", heading "Learning rates" },
-        /// Learning rate of the graph's own tensors (edge weights, source poses, θ).
-        lr_graph: f32 => f32 [check::parsed]
-            { paper "1e-4", release "1e-4", row "57", heading "Learning rates" },
-        /// Learning rate of the learned canonical edge lengths (`dists_key`).
-        lr_lengths: f32 => f32 [check::parsed]
-            { paper "1.6e-4", release "1.6e-4", row "57", heading "Learning rates" },
-        /// λ of the SSIM term in L_rgb (paper: SoM's; `image_loss` docs).
-        lambda_ssim: f64 => f64 [check::parsed]
-            { paper "0.2", release "0.1", row "", heading "L_rgb" },
-        /// Weight of the mask/alpha term (paper: SoM's).
-        lambda_mask: f64 => f64 [check::parsed]
-            { paper "1", release "0", row "", heading "L_rgb" },
-        /// Weight of the scale/shift-invariant depth term (paper: SoM's).
-        lambda_depth: f64 => f64 [check::parsed]
-            { paper "0.5", release "0.1", row "", heading "L_rgb" },
-        /// Weight of the 2D track term (paper: SoM's; release: the iPhone config).
-        lambda_track: f64 => f64 [check::parsed]
-            { paper "2", release "0.1", row "", heading "L_rgb" },
-        /// Weight of the whole graph loss (its DQB and key-motion terms); the key rigidity
-        /// block's λs follow the profile's motion form (rows 45-50).
-        lambda_graph: f64 => f64 [check::parsed]
-            { paper "1", release "2", row "44", heading "Graph" },
-        /// Weight of the key anchor ‖p − p°‖ in fine-tuning (release: prep only; rows 39-40).
-        key_anchor_weight: f64 => f64 [check::parsed]
-            { paper "1", release "0", row "39", heading "Graph" },
-        /// Weight of the non-key anchor ‖p − p°‖.
-        nonkey_anchor_weight: f64 => f64 [check::parsed]
-            { paper "1", release "0", row "41", heading "Graph" },
-        /// Metric of the anchor and DQB deviations (paper-literal, release, euclidean; rows
-        /// 15-17); `--no-loss-weighting` makes it euclidean.
-        anchor_metric: AnchorMetric => AnchorMetric [check::choice]
-            { paper "paper-literal", release "release", row "15", heading "Graph" },
-        /// Reduction of the graph objective's sums over frames and Gaussians: the anchor and
-        /// DQB terms and App. A.2's key edge, velocity and acceleration terms (sum: Σ_t Σ_i as
-        /// Eqs. 9 and 11 are written; mean: as the release and the base models average).
-        graph_reduction: Reduction => Reduction [check::choice]
-            { paper "sum", release "mean", row "", heading "Graph" },
-        /// Log-base of the non-key DQB blend weights, before the trainable per-key sharpness θ
-        /// and per-edge offsets Δw of both profiles (`table`: the edges table's weights, so
-        /// w ∝ w_table^|θ|; `current`: exp(−λ d²)^|θ| with d the distance to the key at the
-        /// non-key's t̂ in the current positions, recomputed each step as the release does).
-        nonkey_weights: NonkeyWeights => NonkeyWeights [check::choice]
-            { paper "table", release "current", row "32", heading "Graph" },
-        /// Weight of the L2 penalty mean(Δw²) on the non-key weight offsets within L_non-key
-        /// (scaled by λ_graph; the paper has no Δw: the release's).
-        nonkey_dweight_l2: f64 => f64 [check::parsed]
-            { paper "1e-5", release "1e-5", row "42", heading "Graph" },
-        /// Add trainable per-non-key offsets (Δp, Δq) to the DQB output, the release's
-        /// `per_nonkeyGaussian_dxyz_dxyzw` (the paper's DQB has none).
-        nonkey_pose_offsets: bool => bool [check::parsed]
-            { paper "false", release "true", row "36", heading "Graph" },
-        /// Weight of the L2 penalty mean(offset²) on those offsets within L_non-key (scaled by
-        /// λ_graph).
-        nonkey_offset_l2: f64 => f64 [check::parsed]
-            { paper "1e-3", release "1e-3", row "42", heading "Graph" },
-        /// Depth ratio r_z of U.
-        r_z: f64 => f64 [check::parsed]
-            { paper "0.01", release "0.1", row "15", heading "Graph" },
-        /// λ_vel of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
-        lambda_vel: f64 => f64 [check::parsed]
-            { paper "0.01", release "100", row "52", heading "Motion" },
-        /// λ_acc of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
-        lambda_acc: f64 => f64 [check::parsed]
-            { paper "0.01", release "1", row "53", heading "Motion" },
-        /// Fraction of the key-key edges kept each step.
-        edge_keep_ratio: f64 => f64 [check::parsed]
-            { paper "1", release "0.8", row "51", heading "Motion" },
-        /// Iteration cap of each fit of the graph initialisation before fine-tuning (the
-        /// non-keys' DQB source poses, then the keys; then the non-keys follow their keys'
-        /// DQB), 0 for none (official-release §5.1; the paper names no procedure, and on
-        /// the drifting priors it cost accuracy: README "Deliberate readings").
-        graph_init_iters: u32 => u32 [check::parsed]
-            { paper "0", release "10000", row "37", heading "Graph initialisation" },
-        /// Adam's starting learning rate of the graph initialisation (plateau schedule).
-        graph_init_lr: f32 => f32 [check::parsed]
-            { paper "0.1", release "0.1", row "37", heading "Graph initialisation" },
-        /// Fraction of the key edges kept per iteration of the key fit.
-        graph_init_edge_keep: f64 => f64 [check::parsed]
-            { paper "0.7", release "0.7", row "38", heading "Graph initialisation" },
-        /// Frames per iteration of the non-key fit.
-        graph_init_batch: usize => usize [check::count]
-            { paper "30", release "30", row "37", heading "Graph initialisation" },
-        /// Weight of the keys' acceleration term in the key fit.
-        graph_init_acc: f64 => f64 [check::parsed]
-            { paper "0.1", release "0.1", row "37", heading "Graph initialisation" },
-        /// Neighbours of the vanilla recipe's kNN motion graph.
-        knn_k: usize => usize [check::parsed]
-            { paper "8", release "8", row "", heading "Motion" },
-        /// Density control starts at this fraction of the steps.
-        density_start: f32 => f32 [check::parsed]
-            { paper "0.1", release "0.01", row "59", heading "Density control" },
-        /// Density control ends at this fraction of the steps.
-        density_end: f32 => f32 [check::parsed]
-            { paper "0.8", release "0.8", row "59", heading "Density control" },
-        /// Densify and prune every this many steps (official-release §5.3).
-        densify_every: u32 => u32 [check::parsed]
-            { paper "300", release "300", row "", heading "Density control" },
-        /// Reset opacities every this many steps, 0 for never (official-release §5.3).
-        opacity_reset_every: u32 => Option<u32> [check::parsed]
-            { paper "1000", release "1000", row "", heading "Density control" },
-        /// Mean screen-space (NDC) position-gradient norm above which a Gaussian is densified
-        /// (official-release §5.3).
-        densify_grad: f32 => f32 [check::parsed]
-            { paper "2e-4", release "2e-4", row "", heading "Density control" },
-        /// Largest scale, as a fraction of the scene extent, of a Gaussian that is cloned
-        /// (larger ones are split; release percent_dense).
-        percent_dense: f32 => f32 [check::parsed]
-            { paper "0.01", release "0.01", row "", heading "Density control" },
-        /// Prune Gaussians whose opacity falls below this (official-release §5.3).
-        prune_opacity: f32 => f32 [check::parsed]
-            { paper "0.01", release "0.01", row "", heading "Density control" },
+        heading "Method" {
+            /// Training frames per step, a seeded permutation per epoch.
+            batch_frames: usize => usize [check::parsed] { paper "8", release "8" },
+        }
+        heading "Run" {
+            /// Write a checkpoint (beside the output, `OUT.ckpt/`) every this many steps, 0 for
+            /// none; a run started again resumes from it.
+            checkpoint_every: u32 => Option<u32> [check::parsed] { paper "100", release "100" },
+        }
+        heading "Learning rates" {
+            /// Learning rate of the per-frame positions (the paper gives none: the release's).
+            lr_position: f32 => f32 [check::parsed] { paper "1.6e-4", release "1.6e-4", row "57" },
+            /// Learning rate of the per-frame rotations.
+            lr_rotation: f32 => f32 [check::parsed] { paper "5e-2", release "5e-2", row "57" },
+            /// Learning rate of the log-scales (MoSca lr_s, official-release §5.3).
+            lr_scale: f32 => f32 [check::parsed] { paper "5e-3", release "5e-3" },
+            /// Learning rate of the opacity logits (MoSca lr_o).
+            lr_opacity: f32 => f32 [check::parsed] { paper "5e-2", release "5e-2" },
+            /// Learning rate of the degree-0 colour (MoSca lr_sph).
+            lr_color: f32 => f32 [check::parsed] { paper "2.5e-3", release "2.5e-3" },
+            /// Learning rate of the higher SH coefficients (MoSca lr_sph / 20, 2.5e-3 / 20 in
+            /// f32).
+            lr_sh_rest: f32 => f32 [check::parsed] { paper "1.2499999e-4", release "1.2499999e-4" },
+            /// Learning rate of the graph's own tensors (edge weights, source poses, θ).
+            lr_graph: f32 => f32 [check::parsed] { paper "1e-4", release "1e-4", row "57" },
+            /// Learning rate of the learned canonical edge lengths (`dists_key`).
+            lr_lengths: f32 => f32 [check::parsed] { paper "1.6e-4", release "1.6e-4", row "57" },
+        }
+        heading "L_rgb" {
+            /// λ of the SSIM term in L_rgb (paper: SoM's; `image_loss` docs).
+            lambda_ssim: f64 => f64 [check::parsed] { paper "0.2", release "0.1" },
+            /// Weight of the mask/alpha term (paper: SoM's).
+            lambda_mask: f64 => f64 [check::parsed] { paper "1", release "0" },
+            /// Weight of the scale/shift-invariant depth term (paper: SoM's).
+            lambda_depth: f64 => f64 [check::parsed] { paper "0.5", release "0.1" },
+            /// Weight of the 2D track term (paper: SoM's; release: the iPhone config).
+            lambda_track: f64 => f64 [check::parsed] { paper "2", release "0.1" },
+        }
+        heading "Graph" {
+            /// Weight of the whole graph loss (its DQB and key-motion terms); the key rigidity
+            /// block's λs follow the profile's motion form (rows 45-50).
+            lambda_graph: f64 => f64 [check::parsed] { paper "1", release "2", row "44" },
+            /// Weight of the key anchor ‖p − p°‖ in fine-tuning (release: prep only; rows 39-40).
+            key_anchor_weight: f64 => f64 [check::parsed] { paper "1", release "0", row "39" },
+            /// Weight of the non-key anchor ‖p − p°‖.
+            nonkey_anchor_weight: f64 => f64 [check::parsed] { paper "1", release "0", row "41" },
+            /// Metric of the anchor and DQB deviations (paper-literal, release, euclidean; rows
+            /// 15-17); `--no-loss-weighting` makes it euclidean.
+            anchor_metric: AnchorMetric => AnchorMetric [check::choice]
+                { paper "paper-literal", release "release", row "15" },
+            /// Reduction of the graph objective's sums over frames and Gaussians: the anchor and
+            /// DQB terms and App. A.2's key edge, velocity and acceleration terms (sum: Σ_t Σ_i as
+            /// Eqs. 9 and 11 are written; mean: as the release and the base models average).
+            graph_reduction: Reduction => Reduction [check::choice] { paper "sum", release "mean" },
+            /// Log-base of the non-key DQB blend weights, before the trainable per-key sharpness θ
+            /// and per-edge offsets Δw of both profiles (`table`: the edges table's weights, so
+            /// w ∝ w_table^|θ|; `current`: exp(−λ d²)^|θ| with d the distance to the key at the
+            /// non-key's t̂ in the current positions, recomputed each step as the release does).
+            nonkey_weights: NonkeyWeights => NonkeyWeights [check::choice]
+                { paper "table", release "current", row "32" },
+            /// Weight of the L2 penalty mean(Δw²) on the non-key weight offsets within L_non-key
+            /// (scaled by λ_graph; the paper has no Δw: the release's).
+            nonkey_dweight_l2: f64 => f64 [check::parsed]
+                { paper "1e-5", release "1e-5", row "42" },
+            /// Add trainable per-non-key offsets (Δp, Δq) to the DQB output, the release's
+            /// `per_nonkeyGaussian_dxyz_dxyzw` (the paper's DQB has none).
+            nonkey_pose_offsets: bool => bool [check::parsed]
+                { paper "false", release "true", row "36" },
+            /// Weight of the L2 penalty mean(offset²) on those offsets within L_non-key (scaled by
+            /// λ_graph).
+            nonkey_offset_l2: f64 => f64 [check::parsed] { paper "1e-3", release "1e-3", row "42" },
+            /// Depth ratio r_z of U.
+            r_z: f64 => f64 [check::parsed] { paper "0.01", release "0.1", row "15" },
+        }
+        heading "Motion" {
+            /// λ_vel of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
+            lambda_vel: f64 => f64 [check::parsed] { paper "0.01", release "100", row "52" },
+            /// λ_acc of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
+            lambda_acc: f64 => f64 [check::parsed] { paper "0.01", release "1", row "53" },
+            /// Fraction of the key-key edges kept each step.
+            edge_keep_ratio: f64 => f64 [check::parsed] { paper "1", release "0.8", row "51" },
+            /// Neighbours of the vanilla recipe's kNN motion graph.
+            knn_k: usize => usize [check::parsed] { paper "8", release "8" },
+        }
+        heading "Graph initialisation" {
+            /// Iteration cap of each fit of the graph initialisation before fine-tuning (the
+            /// non-keys' DQB source poses, then the keys; then the non-keys follow their keys'
+            /// DQB), 0 for none (official-release §5.1; the paper names no procedure, and on
+            /// the drifting priors it cost accuracy: README "Deliberate readings").
+            graph_init_iters: u32 => u32 [check::parsed] { paper "0", release "10000", row "37" },
+            /// Adam's starting learning rate of the graph initialisation (plateau schedule).
+            graph_init_lr: f32 => f32 [check::parsed] { paper "0.1", release "0.1", row "37" },
+            /// Fraction of the key edges kept per iteration of the key fit.
+            graph_init_edge_keep: f64 => f64 [check::parsed]
+                { paper "0.7", release "0.7", row "38" },
+            /// Frames per iteration of the non-key fit.
+            graph_init_batch: usize => usize [check::count] { paper "30", release "30", row "37" },
+            /// Weight of the keys' acceleration term in the key fit.
+            graph_init_acc: f64 => f64 [check::parsed] { paper "0.1", release "0.1", row "37" },
+        }
+        heading "Density control" {
+            /// Density control starts at this fraction of the steps.
+            density_start: f32 => f32 [check::parsed] { paper "0.1", release "0.01", row "59" },
+            /// Density control ends at this fraction of the steps.
+            density_end: f32 => f32 [check::parsed] { paper "0.8", release "0.8", row "59" },
+            /// Densify and prune every this many steps (official-release §5.3).
+            densify_every: u32 => u32 [check::parsed] { paper "300", release "300" },
+            /// Reset opacities every this many steps, 0 for never (official-release §5.3).
+            opacity_reset_every: u32 => Option<u32> [check::parsed]
+                { paper "1000", release "1000" },
+            /// Mean screen-space (NDC) position-gradient norm above which a Gaussian is densified
+            /// (official-release §5.3).
+            densify_grad: f32 => f32 [check::parsed] { paper "2e-4", release "2e-4" },
+            /// Largest scale, as a fraction of the scene extent, of a Gaussian that is cloned
+            /// (larger ones are split; release percent_dense).
+            percent_dense: f32 => f32 [check::parsed] { paper "0.01", release "0.01" },
+            /// Prune Gaussians whose opacity falls below this (official-release §5.3).
+            prune_opacity: f32 => f32 [check::parsed] { paper "0.01", release "0.01" },
+        }
     }
     copied {
-        /// Seed of the frame order and the random edge subsets.
-        seed: u64 [check::parsed] { default "0", heading "Method" },
+        heading "Method" {
+            /// Seed of the frame order and the random edge subsets.
+            seed: u64 [check::parsed] { default "0" },
+        }
     }
 }
 

@@ -87,40 +87,36 @@ crate::stage_params! {
         out: PathBuf,
     }
     params {
-        /// Colour-error threshold η_c, in (0, 1].
-        eta_c: f32 => f32 [check::unit]
-            { paper "0.5", release "0.3", row "5", heading "Method" },
-        /// Pixels tested (all-covered-pixels, centre-pixel).
-        gate: Gate => Gate [check::choice]
-            { paper "all-covered-pixels", release "centre-pixel", row "4", heading "Method" },
-        /// Covered pixels of the all-covered-pixels test: those where the Gaussian's
-        /// blending weight T·α is at least this, in [0, 1]; 0 for every pixel it touches.
-        cover_min_weight: f32 => Option<f32> [check::fraction]
-            { paper "0.5", release "0", row "4", heading "Method" },
-        /// Channel reduction of the L1 error (sum, mean).
-        channel_reduce: ChannelReduce => ChannelReduce [check::choice]
-            { paper "sum", release "mean", row "6", heading "Method" },
-        /// SSIM gate threshold, 0 for off (`None`).
-        ssim_gate: f32 => Option<f32> [check::finite32]
-            { paper "0", release "0.01", row "7", heading "Method" },
-        /// Depth-edge gate percentile, 0 for off (`None`).
-        depth_edge_percentile: f32 => Option<f32> [check::percentile]
-            { paper "0", release "90", row "8", heading "Method" },
-        /// Foreground-mask gate.
-        fg_mask_gate: bool => bool [check::parsed]
-            { paper "false", release "true", row "9", heading "Method" },
-        /// φ, the uncertainty of unconverged or unseen Gaussians.
-        phi: f32 => f32 [check::positive]
-            { paper "1e8", release "1e8", row "10", heading "Method" },
-        /// Gaussians listed (all, dynamic-only).
-        scope: Scope => Scope [check::choice]
-            { paper "all", release "dynamic-only", row "3", heading "Method" },
-        /// Contribution normalisation target, 0 for off (`None`).
-        contrib_norm_target: f32 => Option<f32> [check::finite32]
-            { paper "0", release "0.5", row "11", heading "Method" },
-        /// Clip of the normalised contribution.
-        contrib_clip_max: f32 => f32 [check::positive]
-            { paper "10", release "10", row "12", heading "Method" },
+        heading "Method" {
+            /// Colour-error threshold η_c, in (0, 1].
+            eta_c: f32 => f32 [check::unit] { paper "0.5", release "0.3", row "5" },
+            /// Pixels tested (all-covered-pixels, centre-pixel).
+            gate: Gate => Gate [check::choice]
+                { paper "all-covered-pixels", release "centre-pixel", row "4" },
+            /// Covered pixels of the all-covered-pixels test: those where the Gaussian's
+            /// blending weight T·α is at least this, in [0, 1]; 0 for every pixel it touches.
+            cover_min_weight: f32 => Option<f32> [check::fraction]
+                { paper "0.5", release "0", row "4" },
+            /// Channel reduction of the L1 error (sum, mean).
+            channel_reduce: ChannelReduce => ChannelReduce [check::choice]
+                { paper "sum", release "mean", row "6" },
+            /// SSIM gate threshold, 0 for off (`None`).
+            ssim_gate: f32 => Option<f32> [check::finite32] { paper "0", release "0.01", row "7" },
+            /// Depth-edge gate percentile, 0 for off (`None`).
+            depth_edge_percentile: f32 => Option<f32> [check::percentile]
+                { paper "0", release "90", row "8" },
+            /// Foreground-mask gate.
+            fg_mask_gate: bool => bool [check::parsed] { paper "false", release "true", row "9" },
+            /// φ, the uncertainty of unconverged or unseen Gaussians.
+            phi: f32 => f32 [check::positive] { paper "1e8", release "1e8", row "10" },
+            /// Gaussians listed (all, dynamic-only).
+            scope: Scope => Scope [check::choice] { paper "all", release "dynamic-only", row "3" },
+            /// Contribution normalisation target, 0 for off (`None`).
+            contrib_norm_target: f32 => Option<f32> [check::finite32]
+                { paper "0", release "0.5", row "11" },
+            /// Clip of the normalised contribution.
+            contrib_clip_max: f32 => f32 [check::positive] { paper "10", release "10", row "12" },
+        }
     }
     copied {}
 }
