@@ -94,6 +94,21 @@ impl PoseGrads {
         self.rotation.fill([0.0; 4]);
     }
 
+    /// Add the rows of `rows` (`[frames.len(), n]`) to the frames `frames` (row j to frame
+    /// `frames[j]`, in row order).
+    pub fn add_rows(&mut self, rows: &PoseGrads, frames: &[usize]) {
+        let n = rows.position.len() / frames.len().max(1);
+        for (j, &t) in frames.iter().enumerate() {
+            let (to, from) = (t * n..(t + 1) * n, j * n..(j + 1) * n);
+            for (a, b) in self.position[to.clone()].iter_mut().zip(&rows.position[from.clone()]) {
+                (0..3).for_each(|c| a[c] += b[c]);
+            }
+            for (a, b) in self.rotation[to].iter_mut().zip(&rows.rotation[from]) {
+                (0..4).for_each(|c| a[c] += b[c]);
+            }
+        }
+    }
+
     /// Zero gradients for `frames` frames of `n` Gaussians, reusing the allocation (cleared
     /// in parallel).
     pub fn reset(&mut self, frames: usize, n: usize) {
@@ -127,5 +142,22 @@ mod tests {
         g.position[k][0] = 1.0;
         g.reset(2, 7);
         assert_eq!(g, PoseGrads::zeros(2, 7));
+    }
+
+    #[test]
+    fn rows_are_added_to_their_frames() {
+        let mut g = PoseGrads::zeros(4, 2);
+        g.position[2 * 2 + 1] = [1.0, 0.0, 0.0];
+        let mut rows = PoseGrads::zeros(3, 2);
+        for (j, r) in rows.position.iter_mut().enumerate() {
+            *r = [j as f32, 1.0, 0.0];
+        }
+        rows.rotation[5] = [0.0, 0.0, 0.0, 2.0];
+        // frame 2 twice (a batch longer than the frames): both rows land on it
+        g.add_rows(&rows, &[2, 0, 2]);
+        assert_eq!(g.position[2 * 2 + 1], [1.0 + 1.0 + 5.0, 2.0, 0.0]);
+        assert_eq!(g.position[0], [2.0, 1.0, 0.0]);
+        assert_eq!(g.position[2], [0.0; 3], "frame 1 untouched");
+        assert_eq!(g.rotation[2 * 2 + 1], [0.0, 0.0, 0.0, 2.0]);
     }
 }

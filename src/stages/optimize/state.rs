@@ -45,10 +45,11 @@ pub struct TrainState {
     pub sh_rest: Vec<f32>,
 }
 
-/// Gradients w.r.t. a [`TrainState`], same layout.
+/// Gradients w.r.t. a [`TrainState`], same layout except the poses, which hold only some
+/// frames (the image step's: one row per batch frame).
 #[derive(Debug, Clone, PartialEq)]
 pub struct StateGrads {
-    /// Poses.
+    /// Pose gradients `[rows, N]`.
     pub poses: PoseGrads,
     /// dL/d log-scale `[N, 3]`.
     pub log_scale: Vec<[f32; 3]>,
@@ -61,10 +62,10 @@ pub struct StateGrads {
 }
 
 impl StateGrads {
-    /// Zero gradients for `s`.
-    pub fn zeros(s: &TrainState) -> Self {
+    /// Zero gradients for `s`, with `pose_rows` rows of pose gradients.
+    pub fn zeros(s: &TrainState, pose_rows: usize) -> Self {
         StateGrads {
-            poses: PoseGrads::zeros(s.poses.frames, s.n()),
+            poses: PoseGrads::zeros(pose_rows, s.n()),
             log_scale: vec![[0.0; 3]; s.n()],
             logit_opacity: vec![0.0; s.n()],
             color: vec![[0.0; 3]; s.n()],
@@ -72,11 +73,11 @@ impl StateGrads {
         }
     }
 
-    /// Zero gradients for `s`, reusing these buffers (a step's `[T, N]` pose gradients
-    /// would otherwise be fresh pages, faulted in and cleared by the kernel every step).
-    pub fn reset(&mut self, s: &TrainState) {
+    /// Zero gradients for `s` with `pose_rows` rows of pose gradients, reusing these
+    /// buffers.
+    pub fn reset(&mut self, s: &TrainState, pose_rows: usize) {
         let n = s.n();
-        self.poses.reset(s.poses.frames, n);
+        self.poses.reset(pose_rows, n);
         for v in [&mut self.log_scale, &mut self.color] {
             v.clear();
             v.resize(n, [0.0; 3]);

@@ -265,7 +265,8 @@ pub struct ImageStep {
 
 /// L_rgb and its gradients over the batch frames `batch` (frame indices, in order), rendered
 /// by `renderer` (the CPU, or the GPU that `--device` names); `grads` is reset to the
-/// gradients of the batch-mean L_rgb. Each phase's wall time is added to `timer`.
+/// gradients of the batch-mean L_rgb, its pose row j holding frame `batch[j]`'s. Each
+/// phase's wall time is added to `timer`.
 pub fn image_step<R: DifferentiableRenderer>(
     renderer: &R,
     state: &TrainState,
@@ -289,7 +290,7 @@ pub fn image_step<R: DifferentiableRenderer>(
             frame: ShFrame::World,
         }
     };
-    grads.reset(state);
+    grads.reset(state, batch.len());
     let mut screen_grad = vec![0.0f32; n];
     let mut screen_count = vec![0u32; n];
     let mut terms: Vec<(&'static str, f64)> = Vec::new();
@@ -298,7 +299,8 @@ pub fn image_step<R: DifferentiableRenderer>(
         let cam = views.training_camera(t);
         // The track term's target: the next frame of the batch (its positions rendered as
         // features from this frame, Shape of Motion's scheme).
-        let target = batch[(j + 1) % batch.len()];
+        let target_row = (j + 1) % batch.len();
+        let target = batch[target_row];
         let target_cam = views.training_camera(target);
         let tracks = timer.time("load ground truth", || {
             if weights.track > 0.0 && target != t {
@@ -351,11 +353,11 @@ pub fn image_step<R: DifferentiableRenderer>(
         let (half_w, half_h) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);
         let k3 = state.sh_rest.len() / n.max(1);
         for i in 0..n {
-            let p = &mut grads.poses.position[t * n + i];
+            let p = &mut grads.poses.position[j * n + i];
             for k in 0..3 {
                 p[k] += inv_b * g.means[i][k];
             }
-            let q = &mut grads.poses.rotation[t * n + i];
+            let q = &mut grads.poses.rotation[j * n + i];
             for k in 0..4 {
                 q[k] += inv_b * g.quats[i][k];
             }
@@ -376,7 +378,7 @@ pub fn image_step<R: DifferentiableRenderer>(
         }
         if nf > 0 {
             let scaled: Vec<f32> = g.features.iter().map(|v| inv_b * v).collect();
-            let at = &mut grads.poses.position[target * n..(target + 1) * n];
+            let at = &mut grads.poses.position[target_row * n..(target_row + 1) * n];
             add_target_position_grads(at, &scaled, nf, 0, &target_cam);
         }
         debug_assert_eq!(grads.sh_rest.len(), n * k3);

@@ -13,6 +13,9 @@ use std::time::{Duration, Instant};
 pub struct PhaseTimes {
     /// `(phase, wall time, CPU time)`; CPU time is `None` where it is not read or cannot be.
     pub totals: Vec<(&'static str, Duration, Option<Duration>)>,
+    /// `(part, phase)`: the phases that ran inside another one, beside other parts (their
+    /// wall times overlap; their CPU time is not read).
+    pub within: Vec<(&'static str, &'static str)>,
     /// Whether phases also read the process's CPU time.
     cpu: bool,
 }
@@ -37,7 +40,7 @@ fn cpu_ns() -> Option<u64> {
 impl PhaseTimes {
     /// Totals that also hold the CPU time of each phase (wall time only by default).
     pub fn with_cpu_time() -> Self {
-        PhaseTimes { totals: Vec::new(), cpu: true }
+        PhaseTimes { cpu: true, ..PhaseTimes::default() }
     }
 
     /// The clocks now.
@@ -74,6 +77,28 @@ impl PhaseTimes {
         for &(k, w, c) in &other.totals {
             self.add(k, w, c);
         }
+        for &(k, p) in &other.within {
+            self.mark_within(k, p);
+        }
+    }
+
+    /// Add the phases of `other` as parts of `phase` (wall time only).
+    pub fn merge_within(&mut self, phase: &'static str, other: &PhaseTimes) {
+        for &(k, w, _) in &other.totals {
+            self.add(k, w, None);
+            self.mark_within(k, phase);
+        }
+    }
+
+    /// The phase that `part` ran inside, if any.
+    pub fn parent(&self, part: &str) -> Option<&'static str> {
+        self.within.iter().find(|(k, _)| *k == part).map(|(_, p)| *p)
+    }
+
+    fn mark_within(&mut self, part: &'static str, phase: &'static str) {
+        if self.parent(part).is_none() {
+            self.within.push((part, phase));
+        }
     }
 }
 
@@ -95,5 +120,20 @@ mod tests {
         if cfg!(target_os = "linux") {
             assert!(u.totals[1].2.is_some(), "CPU time is read on Linux");
         }
+    }
+
+    #[test]
+    fn parts_keep_their_phase_and_only_wall_time() {
+        let mut part = PhaseTimes::with_cpu_time();
+        part.add("render", Duration::from_millis(4), Some(Duration::from_millis(4)));
+        let mut t = PhaseTimes::with_cpu_time();
+        t.add("both", Duration::from_millis(5), Some(Duration::from_millis(9)));
+        t.merge_within("both", &part);
+        t.merge_within("both", &part);
+        let mut total = PhaseTimes::default();
+        total.merge(&t);
+        assert_eq!(total.parent("render"), Some("both"));
+        assert_eq!(total.parent("both"), None);
+        assert_eq!(total.totals[1], ("render", Duration::from_millis(8), None));
     }
 }

@@ -17,7 +17,7 @@ use super::graph_loss::GraphObjective;
 use super::nonkey_weights::{self, NonkeyWeights};
 use super::objective::{GraphSource, KnnMotion, build_graph, trained_graph};
 use super::params::{OptimizeParams, OptimizeSettings, Recipe};
-use super::poses::Poses;
+use super::poses::{PoseGrads, Poses};
 use super::state::{StateGrads, TrainState};
 use super::step::{TrainingViews, image_step};
 use super::timing::PhaseTimes;
@@ -30,6 +30,9 @@ use crate::tables::key_nodes::{KeyNodes, Role};
 use crate::tables::training_log::{LR_GROUPS, LogRow};
 use crate::tables::{self, Provenance, Table};
 use crate::util::rng::{Rng, mix};
+
+/// The phase in which L_rgb and the motion or graph terms run side by side.
+pub const BESIDE: &str = "L_rgb beside the motion terms";
 
 /// The frames of step `step`: positions `step·B .. step·B + B` of an endless stream made of
 /// one seeded permutation of 0..T per epoch (the release's `infinite_batches`). A pure
@@ -371,37 +374,54 @@ pub fn run_timed(
     bar.set_position(c.step as u64);
     let first_step = c.step;
     let mut times = PhaseTimes::default();
-    let mut grads = StateGrads::zeros(&c.state);
+    let mut grads = StateGrads::zeros(&c.state, s.batch_frames);
+    let mut poses_grad = PoseGrads::zeros(c.state.poses.frames, c.state.n());
     while c.step < s.steps {
         let step = c.step;
         let started = Instant::now();
         let mut timer = if cpu_time { PhaseTimes::with_cpu_time() } else { PhaseTimes::default() };
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
-        let img = image_step(
-            &renderer, &c.state, &views, &batch, &s.image, &render, &mut grads, &mut timer,
-        )?;
+        // L_rgb (batch frames) and the motion or graph terms (all frames) are independent:
+        // they run side by side, each into its own gradients, added in a fixed order.
+        let beside = timer.start();
+        let (mut t_img, mut t_motion) = (PhaseTimes::default(), PhaseTimes::default());
+        let state = &c.state;
+        let (img, extra) = rayon::join(
+            || {
+                image_step(
+                    &renderer, state, &views, &batch, &s.image, &render, &mut grads, &mut t_img,
+                )
+            },
+            || {
+                poses_grad.reset(state.poses.frames, state.n());
+                match &mut objective {
+                    Objective::Knn(k) => t_motion
+                        .time("kNN motion terms", || k.evaluate(&state.poses, &mut poses_grad)),
+                    Objective::Graph(o) => o.evaluate(
+                        &state.poses,
+                        &batch,
+                        mix(s.seed ^ step as u64),
+                        &mut poses_grad,
+                        &mut t_motion,
+                    ),
+                }
+            },
+        );
+        let img = img?;
+        timer.stop(BESIDE, beside);
+        timer.merge_within(BESIDE, &t_img);
+        timer.merge_within(BESIDE, &t_motion);
+        timer.time("add image pose gradients", || poses_grad.add_rows(&grads.poses, &batch));
         let mut terms: Vec<(String, f64)> = Vec::new();
         terms.extend(img.terms.iter().map(|(k, v)| (k.to_string(), *v)));
-        let extra = match &mut objective {
-            Objective::Knn(k) => {
-                timer.time("kNN motion terms", || k.evaluate(&c.state.poses, &mut grads.poses))
-            }
-            Objective::Graph(o) => o.evaluate(
-                &c.state.poses,
-                &batch,
-                mix(s.seed ^ step as u64),
-                &mut grads.poses,
-                &mut timer,
-            ),
-        };
         terms.extend(extra.iter().map(|(k, v)| (k.to_string(), *v)));
         let loss: f64 = terms.iter().map(|(_, v)| v).sum();
-        timer.time("tie static poses", || c.state.tie_static(&mut grads.poses));
+        timer.time("tie static poses", || c.state.tie_static(&mut poses_grad));
         let adam_started = timer.start();
         c.adam.begin_step();
         let st = &mut c.state;
-        c.adam.update(0, st.poses.position.as_flattened_mut(), grads.poses.position.as_flattened());
-        c.adam.update(1, st.poses.rotation.as_flattened_mut(), grads.poses.rotation.as_flattened());
+        c.adam.update(0, st.poses.position.as_flattened_mut(), poses_grad.position.as_flattened());
+        c.adam.update(1, st.poses.rotation.as_flattened_mut(), poses_grad.rotation.as_flattened());
         c.adam.update(2, st.log_scale.as_flattened_mut(), grads.log_scale.as_flattened());
         c.adam.update(3, &mut st.logit_opacity, &grads.logit_opacity);
         c.adam.update(4, st.color.as_flattened_mut(), grads.color.as_flattened());

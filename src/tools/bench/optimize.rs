@@ -5,7 +5,9 @@
 //! times from its training log; the first step (warm-up) is left out of the mean. A second
 //! table splits the mean step into its phases (render forward and backward, L_rgb, the
 //! motion or graph terms, Adam, ...; [`crate::stages::optimize::timing`]), in wall time
-//! and in CPU time of all threads (which a busy machine inflates far less). Peak memory
+//! and in CPU time of all threads (which a busy machine inflates far less); L_rgb's phases
+//! and the motion or graph terms run side by side, so they are listed (wall time only) as
+//! parts of the phase that holds them and their sum exceeds it. Peak memory
 //! is the process's VmHWM. The global `--device` picks the renderer (`--device gpu` times the
 //! GPU renderer, software adapters included).
 
@@ -133,6 +135,11 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
     let (mut wall, mut cpu) = (0.0, Some(0.0));
     for (name, w, c) in &phases.totals {
         let w = per_step * w.as_secs_f64();
+        if phases.parent(name).is_some() {
+            // a part of the phase above, beside its other parts: wall time only
+            println!("| · {name} | {w:.1} | {:.0}% | |", 100.0 * w / ms);
+            continue;
+        }
         let c = c.map(|c| per_step * c.as_secs_f64());
         wall += w;
         cpu = cpu.zip(c).map(|(a, b)| a + b);
