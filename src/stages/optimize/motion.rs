@@ -75,17 +75,41 @@ impl Track {
         frames: std::ops::Range<usize>,
         first: usize,
     ) -> Self {
+        let mut track = Track::new(0, 0, Vec::new(), Vec::new());
+        track.refill(poses, nodes, frames, first);
+        track
+    }
+
+    /// [`Self::gather_frames`] into this track, reusing its buffers (a streamed pass would
+    /// otherwise map, fault in and unmap tens of MB per block).
+    pub fn refill(
+        &mut self,
+        poses: &Poses,
+        nodes: &[u32],
+        frames: std::ops::Range<usize>,
+        first: usize,
+    ) {
         let (t, m) = (frames.len(), nodes.len());
-        let mut p = Vec::with_capacity(t * m);
-        let mut q = Vec::with_capacity(t * m);
+        for v in [&mut self.q, &mut self.u] {
+            v.clear();
+            v.reserve(t * m);
+        }
+        self.p.clear();
+        self.p.reserve(t * m);
+        self.qn.clear();
+        self.qn.reserve(t * m);
         for f in frames.clone() {
             let base = f * poses.n;
             for &i in nodes {
-                p.push(q4::v64(poses.position[base + i as usize]));
-                q.push(q4::q64(poses.rotation[base + i as usize]));
+                let q = q4::q64(poses.rotation[base + i as usize]);
+                let (u, qn) = q4::normalize(q);
+                self.p.push(q4::v64(poses.position[base + i as usize]));
+                self.q.push(q);
+                self.u.push(u);
+                self.qn.push(qn);
             }
         }
-        Track { start: frames.start, first, ..Track::new(t, m, p, q) }
+        (self.frames, self.start, self.first, self.m) = (t, frames.start, first, m);
     }
 
     #[inline]
@@ -105,6 +129,13 @@ impl TrackGrad {
     /// Zero gradients for a track.
     pub fn zeros(track: &Track) -> Self {
         TrackGrad { rows: vec![[0.0; GW]; track.frames * track.m], m: track.m }
+    }
+
+    /// Zero gradients for `track`, reusing this buffer.
+    pub fn reset(&mut self, track: &Track) {
+        self.rows.clear();
+        self.rows.resize(track.frames * track.m, [0.0; GW]);
+        self.m = track.m;
     }
 
     /// d loss / d position of Gaussian k at frame t.
@@ -200,17 +231,22 @@ fn stream_frames_in<const K: usize>(
     let threads = rayon::current_num_threads().max(1);
     let fit = (wave_rows / ((b + context) * m)).clamp(1, 8);
     let wave = if fit >= threads { fit - fit % threads } else { fit };
+    let mut pool: Vec<(Track, TrackGrad, [f64; K])> = Vec::new();
     for w in blocks.chunks(wave) {
-        let parts: Vec<(Track, TrackGrad, [f64; K])> = w
-            .par_iter()
-            .map(|r| {
-                let a = r.start.saturating_sub(context);
-                let tr = Track::gather_frames(poses, nodes, a..r.end, r.start - a);
-                let mut g = TrackGrad::zeros(&tr);
-                let v = f(&tr, &mut g);
-                (tr, g, v)
-            })
-            .collect();
+        // The blocks' buffers are reused from wave to wave.
+        pool.truncate(w.len());
+        while pool.len() < w.len() {
+            let tr = Track::new(0, 0, Vec::new(), Vec::new());
+            let g = TrackGrad::zeros(&tr);
+            pool.push((tr, g, [0.0; K]));
+        }
+        w.par_iter().zip(pool.par_iter_mut()).for_each(|(r, (tr, g, v))| {
+            let a = r.start.saturating_sub(context);
+            tr.refill(poses, nodes, a..r.end, r.start - a);
+            g.reset(tr);
+            *v = f(tr, g);
+        });
+        let parts = &pool;
         // Each block's own frames are disjoint: added in parallel over frames; then the
         // context frames, in block order.
         let owner = |f: usize| {
@@ -227,7 +263,7 @@ fn stream_frames_in<const K: usize>(
                     g.add_frame(tr, nodes, f - tr.start, gp, gq);
                 }
             });
-        for (tr, g, v) in &parts {
+        for (tr, g, v) in parts {
             for t in 0..tr.first {
                 let f = tr.start + t;
                 let (a, b) = (f * poses.n, (f + 1) * poses.n);
