@@ -34,7 +34,7 @@ const GW: usize = 11;
 /// The poses of `m` Gaussians over a run of frames in f64, frame-major (`t * m + k`).
 /// Terms are evaluated at the local frames `first..frames`; the frames before `first` are
 /// context (read by terms that couple t−Δ..t, never a term's own t).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct Track {
     /// Number of frames held.
     pub frames: usize,
@@ -75,7 +75,7 @@ impl Track {
         frames: std::ops::Range<usize>,
         first: usize,
     ) -> Self {
-        let mut track = Track::new(0, 0, Vec::new(), Vec::new());
+        let mut track = Track::default();
         track.refill(poses, nodes, frames, first);
         track
     }
@@ -90,13 +90,13 @@ impl Track {
         first: usize,
     ) {
         let (t, m) = (frames.len(), nodes.len());
-        for v in [&mut self.q, &mut self.u] {
-            v.clear();
-            v.reserve(t * m);
-        }
         self.p.clear();
-        self.p.reserve(t * m);
+        self.q.clear();
+        self.u.clear();
         self.qn.clear();
+        self.p.reserve(t * m);
+        self.q.reserve(t * m);
+        self.u.reserve(t * m);
         self.qn.reserve(t * m);
         for f in frames.clone() {
             let base = f * poses.n;
@@ -119,7 +119,7 @@ impl Track {
 }
 
 /// Gradients of a [`Track`]: `[T, m]` rows of (position, raw quaternion, unit quaternion).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct TrackGrad {
     rows: Vec<[f64; GW]>,
     m: usize,
@@ -234,12 +234,7 @@ fn stream_frames_in<const K: usize>(
     let mut pool: Vec<(Track, TrackGrad, [f64; K])> = Vec::new();
     for w in blocks.chunks(wave) {
         // The blocks' buffers are reused from wave to wave.
-        pool.truncate(w.len());
-        while pool.len() < w.len() {
-            let tr = Track::new(0, 0, Vec::new(), Vec::new());
-            let g = TrackGrad::zeros(&tr);
-            pool.push((tr, g, [0.0; K]));
-        }
+        pool.resize_with(w.len(), || (Track::default(), TrackGrad::default(), [0.0; K]));
         w.par_iter().zip(pool.par_iter_mut()).for_each(|(r, (tr, g, v))| {
             let a = r.start.saturating_sub(context);
             tr.refill(poses, nodes, a..r.end, r.start - a);

@@ -32,7 +32,7 @@ use crate::tables::{self, Provenance, Table};
 use crate::util::rng::{Rng, mix};
 
 /// The phase in which L_rgb and the motion or graph terms run side by side.
-pub const BESIDE: &str = "L_rgb beside the motion terms";
+const BESIDE: &str = "L_rgb beside the motion terms";
 
 /// The frames of step `step`: positions `step·B .. step·B + B` of an endless stream made of
 /// one seeded permutation of 0..T per epoch (the release's `infinite_batches`). A pure
