@@ -52,12 +52,14 @@
 //! each stage names it with `{ shared NAME }`, without doc lines or parser (either is a
 //! compile error, so neither can silently differ from the constant's).
 //!
+//! A heading declared `heading "Learning rates" as lr: LearningRates { .. }` also generates
+//! the struct `LearningRates`, one field per parameter under it, and the settings' method
+//! `lr()` that copies them out: a stage whose code takes its settings in groups (the
+//! optimiser's learning rates and density control) gets them without restating a field.
+//!
 //! A new stage declares its block the same way in its own `params.rs`: inputs, then one
 //! line per parameter with the §11 row, then `copied`; its extra checks belong in a
-//! [`check`] parser so that clap reports them by option name. A stage whose settings are
-//! grouped (the optimiser's learning rates, loss weights, density control) declares the
-//! flat block and builds its groups from the generated settings
-//! (`stages::optimize::params`).
+//! [`check`] parser so that clap reports them by option name.
 
 /// Which defaults a stage's unset parameters take (official-release.md, Sec. 11).
 #[derive(
@@ -200,6 +202,12 @@ pub mod check {
         if v >= 0.0 { Ok(v) } else { Err(format!("{v} must be a non-negative number")) }
     }
 
+    /// A finite `f32` at least 0 (learning rates).
+    pub fn non_negative32(s: &str) -> Result<f32, String> {
+        let v = finite32(s)?;
+        if v >= 0.0 { Ok(v) } else { Err(format!("{v} must be a non-negative number")) }
+    }
+
     /// Three positive numbers `x,y,z`.
     pub fn triple(s: &str) -> Result<[f64; 3], String> {
         let v: Vec<f64> = s.split(',').map(number).collect::<Result<_, _>>()?;
@@ -330,7 +338,7 @@ macro_rules! stage_params {
         }
         params {
             $(
-                heading $heading:literal {
+                heading $heading:literal $(as $gname:ident: $gty:ident)? {
                     $(
                         $(#[doc = $doc:literal])*
                         $name:ident: $cty:ty => $sty:ty $([$parse:expr])? { $($spec:tt)* },
@@ -429,6 +437,12 @@ macro_rules! stage_params {
             }
         }
 
+        $(
+            $crate::__stage_param_group!($settings $heading [$($gname $gty)?] {
+                $( [$($doc)*] $name: $sty { $($spec)* } ),*
+            });
+        )*
+
         impl $params {
             /// The profile's defaults with the given values applied.
             pub fn resolve(&self) -> anyhow::Result<$settings> {
@@ -483,6 +497,38 @@ macro_rules! __stage_param {
     };
     (parse [] { shared $decl:path }) => {
         $decl.parse
+    };
+}
+
+/// The struct of a [`stage_params!`](crate::stage_params) heading declared
+/// `heading "..." as NAME: TYPE`: one field per parameter under it (same name, type and doc
+/// as the settings' field) and the settings' method `NAME()` that copies them out; nothing for
+/// a heading without a group.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __stage_param_group {
+    ($settings:ident $heading:literal [] { $($params:tt)* }) => {};
+    ($settings:ident $heading:literal [$gname:ident $gty:ident] {
+        $( [$($doc:literal)*] $name:ident: $sty:ty { $($spec:tt)* } ),*
+    }) => {
+        #[doc = concat!("The parameters under \"", $heading, "\" ([`", stringify!($settings),
+            "::", stringify!($gname), "`]).")]
+        #[derive(Debug, Clone, PartialEq, serde::Serialize)]
+        #[serde(rename_all = "kebab-case")]
+        pub struct $gty {
+            $(
+                $(#[doc = $doc])*
+                #[doc = $crate::__stage_param!(doc { $($spec)* })]
+                pub $name: $sty,
+            )*
+        }
+
+        impl $settings {
+            #[doc = concat!("The parameters under \"", $heading, "\", grouped.")]
+            pub fn $gname(&self) -> $gty {
+                $gty { $($name: self.$name.clone(),)* }
+            }
+        }
     };
 }
 

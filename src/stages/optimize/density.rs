@@ -89,7 +89,7 @@ pub fn densify_and_prune(
         }
         let avg = if stats.count[i] > 0 { stats.grad[i] / stats.count[i] as f32 } else { 0.0 };
         let max_scale = state.log_scale[i].iter().copied().fold(f32::MIN, f32::max).exp();
-        let grow = avg >= s.grad;
+        let grow = avg >= s.densify_grad;
         if grow && max_scale > s.percent_dense * extent {
             splits.push(i);
             continue;
@@ -235,11 +235,11 @@ mod tests {
         adam.groups[0].m = (0..24).map(|k| k as f32).collect();
         let stats = DensityStats { grad: vec![1.0, 1.0, 0.0, 1.0], count: vec![1; 4] };
         let settings = DensitySettings {
-            start: 0.0,
-            end: 1.0,
-            every: 1,
+            density_start: 0.0,
+            density_end: 1.0,
+            densify_every: 1,
             opacity_reset_every: None,
-            grad: 0.5,
+            densify_grad: 0.5,
             percent_dense: 0.01,
             prune_opacity: 0.01,
         };

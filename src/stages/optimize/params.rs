@@ -75,24 +75,24 @@ crate::stage_params! {
             /// none; a run started again resumes from it.
             checkpoint_every: u32 => Option<u32> [check::parsed] { paper "100", release "100" },
         }
-        heading "Learning rates" {
+        heading "Learning rates" as lr: LearningRates {
             /// Learning rate of the per-frame positions (the paper gives none: the release's).
-            lr_position: f32 => f32 [check::parsed] { paper "1.6e-4", release "1.6e-4", row "57" },
+            lr_position: f32 => f32 [check::non_negative32] { paper "1.6e-4", release "1.6e-4", row "57" },
             /// Learning rate of the per-frame rotations.
-            lr_rotation: f32 => f32 [check::parsed] { paper "5e-2", release "5e-2", row "57" },
+            lr_rotation: f32 => f32 [check::non_negative32] { paper "5e-2", release "5e-2", row "57" },
             /// Learning rate of the log-scales (MoSca lr_s, official-release §5.3).
-            lr_scale: f32 => f32 [check::parsed] { paper "5e-3", release "5e-3" },
+            lr_scale: f32 => f32 [check::non_negative32] { paper "5e-3", release "5e-3" },
             /// Learning rate of the opacity logits (MoSca lr_o).
-            lr_opacity: f32 => f32 [check::parsed] { paper "5e-2", release "5e-2" },
+            lr_opacity: f32 => f32 [check::non_negative32] { paper "5e-2", release "5e-2" },
             /// Learning rate of the degree-0 colour (MoSca lr_sph).
-            lr_color: f32 => f32 [check::parsed] { paper "2.5e-3", release "2.5e-3" },
+            lr_color: f32 => f32 [check::non_negative32] { paper "2.5e-3", release "2.5e-3" },
             /// Learning rate of the higher SH coefficients (MoSca lr_sph / 20, 2.5e-3 / 20 in
             /// f32).
-            lr_sh_rest: f32 => f32 [check::parsed] { paper "1.2499999e-4", release "1.2499999e-4" },
+            lr_sh_rest: f32 => f32 [check::non_negative32] { paper "1.2499999e-4", release "1.2499999e-4" },
             /// Learning rate of the graph's own tensors (edge weights, source poses, θ).
-            lr_graph: f32 => f32 [check::parsed] { paper "1e-4", release "1e-4", row "57" },
+            lr_graph: f32 => f32 [check::non_negative32] { paper "1e-4", release "1e-4", row "57" },
             /// Learning rate of the learned canonical edge lengths (`dists_key`).
-            lr_lengths: f32 => f32 [check::parsed] { paper "1.6e-4", release "1.6e-4", row "57" },
+            lr_lengths: f32 => f32 [check::non_negative32] { paper "1.6e-4", release "1.6e-4", row "57" },
         }
         heading "L_rgb" {
             /// λ of the SSIM term in L_rgb (paper: SoM's; `image_loss` docs).
@@ -166,11 +166,11 @@ crate::stage_params! {
             /// Weight of the keys' acceleration term in the key fit.
             graph_init_acc: f64 => f64 [check::parsed] { paper "0.1", release "0.1", row "37" },
         }
-        heading "Density control" {
+        heading "Density control" as density: DensitySettings {
             /// Density control starts at this fraction of the steps.
-            density_start: f32 => f32 [check::parsed] { paper "0.1", release "0.01", row "59" },
+            density_start: f32 => f32 [check::fraction] { paper "0.1", release "0.01", row "59" },
             /// Density control ends at this fraction of the steps.
-            density_end: f32 => f32 [check::parsed] { paper "0.8", release "0.8", row "59" },
+            density_end: f32 => f32 [check::fraction] { paper "0.8", release "0.8", row "59" },
             /// Densify and prune every this many steps (official-release §5.3).
             densify_every: u32 => u32 [check::parsed] { paper "300", release "300" },
             /// Reset opacities every this many steps, 0 for never (official-release §5.3).
@@ -225,60 +225,18 @@ pub struct OptimizeSettings {
     pub density: DensitySettings,
 }
 
-/// Adam learning rates (constant; official-release.md Sec. 5.3 and row 57).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub struct LearningRates {
-    /// Per-frame positions `[T, N, 3]`.
-    pub position: f32,
-    /// Per-frame rotations `[T, N, 4]`.
-    pub rotation: f32,
-    /// Log-scales `[N, 3]`.
-    pub scale: f32,
-    /// Opacity logits `[N]`.
-    pub opacity: f32,
-    /// Degree-0 colour `[N, 3]`.
-    pub color: f32,
-    /// Higher SH coefficients `[N, K, 3]`.
-    pub sh_rest: f32,
-    /// The graph's own tensors.
-    pub graph: f32,
-    /// Learned canonical edge lengths.
-    pub lengths: f32,
-}
-
-/// Density control (paper App. B "Training"; release Sec. 5.3, rows 59-60).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub struct DensitySettings {
-    /// First active step as a fraction of the steps.
-    pub start: f32,
-    /// End of the active window as a fraction of the steps.
-    pub end: f32,
-    /// Densify/prune period, steps.
-    pub every: u32,
-    /// Opacity reset period, steps (`None`: never).
-    pub opacity_reset_every: Option<u32>,
-    /// Mean NDC position-gradient norm threshold.
-    pub grad: f32,
-    /// Clone/split boundary as a fraction of the scene extent.
-    pub percent_dense: f32,
-    /// Opacity pruning threshold.
-    pub prune_opacity: f32,
-}
-
 impl DensitySettings {
     /// Whether density control acts at `step` (0-based) of `steps`: inside [start, end) and
     /// on the period.
     pub fn active(&self, step: u32, steps: u32) -> bool {
-        let (lo, hi) = (self.start * steps as f32, self.end * steps as f32);
+        let (lo, hi) = (self.density_start * steps as f32, self.density_end * steps as f32);
         let s = step as f32;
-        s >= lo && s < hi && step > 0 && step.is_multiple_of(self.every.max(1))
+        s >= lo && s < hi && step > 0 && step.is_multiple_of(self.densify_every.max(1))
     }
 
     /// Whether opacities are reset at `step` (inside the active window only).
     pub fn reset(&self, step: u32, steps: u32) -> bool {
-        let (lo, hi) = (self.start * steps as f32, self.end * steps as f32);
+        let (lo, hi) = (self.density_start * steps as f32, self.density_end * steps as f32);
         let s = step as f32;
         match self.opacity_reset_every {
             Some(k) => s >= lo && s < hi && step > 0 && step.is_multiple_of(k.max(1)),
@@ -310,16 +268,7 @@ impl OptimizeSettings {
             seed: v.seed,
             checkpoint_every: v.checkpoint_every,
             no_loss_weighting,
-            lr: LearningRates {
-                position: v.lr_position,
-                rotation: v.lr_rotation,
-                scale: v.lr_scale,
-                opacity: v.lr_opacity,
-                color: v.lr_color,
-                sh_rest: v.lr_sh_rest,
-                graph: v.lr_graph,
-                lengths: v.lr_lengths,
-            },
+            lr: v.lr(),
             image: ImageLossWeights {
                 ssim_lambda: v.lambda_ssim,
                 mask: v.lambda_mask,
@@ -356,15 +305,7 @@ impl OptimizeSettings {
                 ..g
             },
             knn_k: v.knn_k,
-            density: DensitySettings {
-                start: v.density_start,
-                end: v.density_end,
-                every: v.densify_every,
-                opacity_reset_every: v.opacity_reset_every,
-                grad: v.densify_grad,
-                percent_dense: v.percent_dense,
-                prune_opacity: v.prune_opacity,
-            },
+            density: v.density(),
         }
     }
 }
@@ -377,23 +318,8 @@ impl OptimizeParams {
         if s.batch_frames == 0 {
             anyhow::bail!("batch-frames must be at least 1");
         }
-        if s.density.every == 0 {
+        if s.density.densify_every == 0 {
             anyhow::bail!("densify-every must be at least 1");
-        }
-        let lrs = [
-            ("lr-position", s.lr.position),
-            ("lr-rotation", s.lr.rotation),
-            ("lr-scale", s.lr.scale),
-            ("lr-opacity", s.lr.opacity),
-            ("lr-color", s.lr.color),
-            ("lr-sh-rest", s.lr.sh_rest),
-            ("lr-graph", s.lr.graph),
-            ("lr-lengths", s.lr.lengths),
-        ];
-        for (name, v) in lrs {
-            if !(v.is_finite() && v >= 0.0) {
-                anyhow::bail!("{name} must be a non-negative number, got {v}");
-            }
         }
         if !(0.0..=1.0).contains(&s.graph.edge_keep_ratio) {
             anyhow::bail!("edge-keep-ratio must be in [0, 1], got {}", s.graph.edge_keep_ratio);
@@ -423,7 +349,7 @@ mod tests {
         let r = OptimizeSettings::defaults(Profile::Release, Recipe::Usplat4d);
         assert_eq!((p.graph.key_motion, r.graph.key_motion), (1.0, 200.0));
         assert_eq!((p.graph.lambda_vel_acc, r.graph.lambda_vel_acc), ([0.01, 0.01], [100.0, 1.0]));
-        assert_eq!((p.density.start, r.density.start), (0.10, 0.01));
+        assert_eq!((p.density.density_start, r.density.density_start), (0.10, 0.01));
         assert_eq!(p.lr, r.lr, "the paper gives no learning rates: both use the release's");
     }
 
@@ -459,6 +385,9 @@ mod tests {
         .unwrap();
         assert_eq!(s.graph.anchor_metric, AnchorMetric::Euclidean);
         assert_eq!((s.checkpoint_every, s.graph.r_xyz[2]), (None, 0.5));
+        let bad = ["--recipe", "vanilla", "--lr-position=-1"];
+        let e = crate::util::parse_args::<OptimizeParams>(&[&args[..], &bad].concat()).unwrap_err();
+        assert!(e.to_string().contains("--lr-position"), "{e}");
         let e = parse(&["--recipe", "vanilla", "--batch-frames", "0"]).unwrap_err();
         assert!(e.to_string().contains("batch-frames"), "{e}");
         let e = parse(&["--recipe", "usplat4d", "--uncertainty", "u"]).unwrap_err();
@@ -473,7 +402,7 @@ mod tests {
         assert_eq!(on, vec![300, 600, 900, 1200]);
         assert!(r.reset(1000, 1600) && !r.reset(1500, 1600));
         let p = OptimizeSettings::defaults(Profile::Paper, Recipe::Vanilla).density;
-        let d = DensitySettings { every: 10, ..p };
+        let d = DensitySettings { densify_every: 10, ..p };
         let on: Vec<u32> = (0..100).filter(|&s| d.active(s, 100)).collect();
         assert_eq!(on, vec![10, 20, 30, 40, 50, 60, 70], "off for the first 10% and last 20%");
     }

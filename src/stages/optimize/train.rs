@@ -114,7 +114,7 @@ fn build_objective(
 /// One Adam group per trainable tensor of the graph objective, after the image groups.
 fn add_graph_groups(adam: &mut Adam, o: &mut GraphObjective, s: &OptimizeSettings) {
     for slice in o.params_mut() {
-        let lr = if slice.lr_key == "dists_key" { s.lr.lengths } else { s.lr.graph };
+        let lr = if slice.lr_key == "dists_key" { s.lr.lr_lengths } else { s.lr.lr_graph };
         adam.groups.push(Group {
             name: slice.name.to_string(),
             lr,
@@ -251,12 +251,12 @@ fn extent(p: &[[f32; 3]]) -> f32 {
 fn new_adam(state: &TrainState, s: &OptimizeSettings) -> Adam {
     let (n, t) = (state.n(), state.frames());
     Adam::new(&[
-        ("position", s.lr.position, t * n * 3),
-        ("rotation", s.lr.rotation, t * n * 4),
-        ("scale", s.lr.scale, n * 3),
-        ("opacity", s.lr.opacity, n),
-        ("color", s.lr.color, n * 3),
-        ("sh_rest", s.lr.sh_rest, state.sh_rest.len()),
+        ("position", s.lr.lr_position, t * n * 3),
+        ("rotation", s.lr.lr_rotation, t * n * 4),
+        ("scale", s.lr.lr_scale, n * 3),
+        ("opacity", s.lr.lr_opacity, n),
+        ("color", s.lr.lr_color, n * 3),
+        ("sh_rest", s.lr.lr_sh_rest, state.sh_rest.len()),
     ])
 }
 
