@@ -6,11 +6,14 @@
 //! Prediction (SoM): for a query point seen at pixel `q` of the source frame `s`, render
 //! the frame-`s` Gaussians from the frame-`s` camera with their frame-`t` positions as
 //! three feature channels; the predicted frame-`t` position is the blended feature at `q`
-//! divided by the blended alpha ([`predict_positions`]).
+//! divided by the blended alpha ([`predict_positions`]). Where nothing is rendered at `q`
+//! the model makes no prediction.
 //!
-//! Scoring: per ordered frame pair only points valid in both frames count; a pair's EPE
-//! and PCK are means over its points; the final value is the mean over pairs that have at
-//! least one point ([`average_pairs`]). The math is in pure functions over arrays (`[M, 3]`
+//! Scoring: per ordered frame pair only points valid in both frames count; a pair's PCK is
+//! the fraction of its points predicted within the threshold (a point without a prediction
+//! is a miss), its EPE the mean error over its predicted points; the final value is the
+//! mean over pairs that have at least one point ([`average_pairs`]), and the points without
+//! a prediction are counted. The math is in pure functions over arrays (`[M, 3]`
 //! points, M tracked points) so that it is testable without a renderer; the model-level
 //! drivers [`track_3d`] and [`pck_t_model`] take the ground truth in memory
 //! ([`GtTracks3d`], [`GtKeypoints`]).
@@ -53,8 +56,11 @@ pub enum Error {
 pub struct PairScore {
     /// Points valid in both frames.
     pub points: usize,
-    /// Mean end-point error (world units for 3D, pixels for 2D).
-    pub epe: f64,
+    /// Of those, the points without a prediction.
+    pub unpredicted: usize,
+    /// Mean end-point error over the predicted points (world units for 3D, pixels for 2D);
+    /// `None` when no point was predicted.
+    pub epe: Option<f64>,
     /// Fraction of points with error below each threshold (strictly).
     pub pck: Vec<f64>,
 }
@@ -66,33 +72,39 @@ pub struct TrackingScore {
     pub pairs: usize,
     /// Valid points summed over the pairs.
     pub points: usize,
-    /// Mean over pairs of the per-pair mean EPE.
+    /// Of those, the points without a prediction (misses at every threshold).
+    pub unpredicted: usize,
+    /// Mean over the pairs with a predicted point of the per-pair mean EPE (NaN if none).
     pub epe: f64,
     /// Mean over pairs of the per-pair PCK, one per threshold.
     pub pck: Vec<f64>,
 }
 
-/// EPE and PCK of predictions `pred` `[M, D]` against `gt` `[M, D]` over the points with
-/// `valid[m]`; `thresholds` in the units of the points. `None` when no point is valid.
+/// EPE and PCK of predictions `pred` `[M, D]` (`None`: no prediction) against `gt`
+/// `[M, D]` over the points with `valid[m]`; `thresholds` in the units of the points.
+/// `None` when no point is valid.
 pub fn score_pair<const D: usize>(
-    pred: &[[f32; D]],
+    pred: &[Option<[f32; D]>],
     gt: &[[f32; D]],
     valid: &[bool],
     thresholds: &[f64],
 ) -> Option<PairScore> {
     assert_eq!(pred.len(), gt.len(), "pred and gt are [M, D]");
     assert_eq!(valid.len(), gt.len(), "valid is [M]");
-    let errors: Vec<f64> = (0..gt.len())
-        .filter(|&m| valid[m])
-        .map(|m| (0..D).map(|d| (pred[m][d] as f64 - gt[m][d] as f64).powi(2)).sum::<f64>().sqrt())
-        .collect();
-    if errors.is_empty() {
+    let points = valid.iter().filter(|v| **v).count();
+    if points == 0 {
         return None;
     }
-    let n = errors.len() as f64;
+    let errors: Vec<f64> = (0..gt.len())
+        .filter(|&m| valid[m])
+        .filter_map(|m| pred[m].map(|p| (p, gt[m])))
+        .map(|(p, g)| (0..D).map(|d| (p[d] as f64 - g[d] as f64).powi(2)).sum::<f64>().sqrt())
+        .collect();
+    let n = points as f64;
     Some(PairScore {
-        points: errors.len(),
-        epe: errors.iter().sum::<f64>() / n,
+        points,
+        unpredicted: points - errors.len(),
+        epe: (!errors.is_empty()).then(|| errors.iter().sum::<f64>() / errors.len() as f64),
         pck: thresholds
             .iter()
             .map(|t| errors.iter().filter(|e| **e < *t).count() as f64 / n)
@@ -105,10 +117,12 @@ pub fn average_pairs(pairs: &[Option<PairScore>]) -> Option<TrackingScore> {
     let scored: Vec<&PairScore> = pairs.iter().flatten().collect();
     let first = scored.first()?;
     let n = scored.len() as f64;
+    let epes: Vec<f64> = scored.iter().filter_map(|p| p.epe).collect();
     Some(TrackingScore {
         pairs: scored.len(),
         points: scored.iter().map(|p| p.points).sum(),
-        epe: scored.iter().map(|p| p.epe).sum::<f64>() / n,
+        unpredicted: scored.iter().map(|p| p.unpredicted).sum(),
+        epe: epes.iter().sum::<f64>() / epes.len() as f64,
         pck: (0..first.pck.len())
             .map(|k| scored.iter().map(|p| p.pck[k]).sum::<f64>() / n)
             .collect(),
@@ -153,8 +167,8 @@ fn sample(img: &[f32], w: usize, h: usize, c: usize, x: f32, y: f32) -> Vec<f32>
 /// `camera` with each target frame's positions `targets[k]` `[N, 3]` (the same Gaussians
 /// at target frame k) as features (`[N, 3K]`, one render for all targets), and read the
 /// alpha-normalised features at each query pixel `queries` `[M, 2]` (pixel coordinates,
-/// centres at +0.5, bilinear). Returns `[K][M, 3]`. Where nothing is rendered
-/// (alpha < 1e-6) the prediction is the origin, which scores as a miss.
+/// centres at +0.5, bilinear). Returns `[K][M, 3]`, `None` where nothing is rendered
+/// (alpha < 1e-6): no prediction.
 pub fn predict_positions(
     renderer: &dyn Renderer,
     camera: &RenderCamera,
@@ -162,7 +176,7 @@ pub fn predict_positions(
     targets: &[&[[f32; 3]]],
     queries: &[[f32; 2]],
     settings: &RenderSettings,
-) -> Result<Vec<Vec<[f32; 3]>>, crate::render::Error> {
+) -> Result<Vec<Vec<Option<[f32; 3]>>>, crate::render::Error> {
     let n = source.means.len();
     if let Some(bad) = targets.iter().find(|t| t.len() != n) {
         return Err(crate::render::Error::Shape { name: "targets", got: bad.len(), expected: n });
@@ -191,11 +205,7 @@ pub fn predict_positions(
             samples
                 .iter()
                 .map(|(f, a)| {
-                    if *a < 1e-6 {
-                        [0.0; 3]
-                    } else {
-                        [f[3 * t] / a, f[3 * t + 1] / a, f[3 * t + 2] / a]
-                    }
+                    (*a >= 1e-6).then(|| [f[3 * t] / a, f[3 * t + 1] / a, f[3 * t + 2] / a])
                 })
                 .collect()
         })
@@ -357,11 +367,14 @@ pub fn pck_t_model(
             }
             let (pt, vt) = (&gt.pixels[ti], &gt.visible[ti]);
             let tcam = train[gt.frames[ti]];
-            let pred: Vec<[f32; 2]> = pred3
+            // No pixel without a 3D prediction, nor for one behind the target camera.
+            let pred: Vec<Option<[f32; 2]>> = pred3
                 .iter()
                 .map(|p| {
-                    tcam.project(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                        .map_or([f32::INFINITY; 2], |(x, y, _)| [x as f32, y as f32])
+                    let p = p.as_ref()?;
+                    let (x, y, _) =
+                        tcam.project(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))?;
+                    Some([x as f32, y as f32])
                 })
                 .collect();
             let valid: Vec<bool> = (0..j).map(|m| vs[m] && vt[m]).collect();
@@ -384,23 +397,39 @@ mod tests {
     #[test]
     fn epe_and_pck_on_hand_made_points() {
         let gt = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [5.0, 5.0, 5.0]];
-        let pred = [[0.0, 0.0, 0.3], [1.0, 0.04, 0.0], [0.0, 2.0, 0.1], [0.0, 0.0, 0.0]];
+        let mut pred =
+            [[0.0, 0.0, 0.3], [1.0, 0.04, 0.0], [0.0, 2.0, 0.1], [0.0, 0.0, 0.0]].map(Some);
         // Point 3 is invalid: errors 0.3, 0.04, 0.1.
         let s = score_pair(&pred, &gt, &[true, true, true, false], &[0.05, 0.1, 0.2]).unwrap();
-        assert_eq!(s.points, 3);
-        assert!((s.epe - 0.44 / 3.0).abs() < 1e-6, "{}", s.epe);
+        assert_eq!((s.points, s.unpredicted), (3, 0));
+        assert!((s.epe.unwrap() - 0.44 / 3.0).abs() < 1e-6, "{s:?}");
         // 0.1 is not strictly below the 0.1 threshold (f32 rounding aside it is ~0.1).
         assert_eq!(s.pck[0], 1.0 / 3.0);
         assert_eq!(s.pck[2], 2.0 / 3.0);
         assert_eq!(score_pair(&pred, &gt, &[false; 4], &[0.1]), None);
+        // A point without a prediction misses every threshold and leaves the EPE mean.
+        pred[1] = None;
+        let s = score_pair(&pred, &gt, &[true, true, true, false], &[0.05, 0.2]).unwrap();
+        assert!((s.epe.unwrap() - 0.2).abs() < 1e-6, "{s:?}");
+        assert_eq!((s.points, s.unpredicted, s.pck), (3, 1, vec![0.0, 1.0 / 3.0]));
+        let none = score_pair(&[None::<[f32; 2]>], &[[0.0; 2]], &[true], &[1.0]).unwrap();
+        assert_eq!((none.unpredicted, none.epe, none.pck), (1, None, vec![0.0]));
     }
 
     #[test]
     fn pairs_without_points_are_skipped() {
-        let a = PairScore { points: 2, epe: 1.0, pck: vec![0.5, 1.0] };
-        let b = PairScore { points: 7, epe: 3.0, pck: vec![0.0, 0.5] };
-        let s = average_pairs(&[Some(a), None, Some(b)]).unwrap();
-        assert_eq!(s, TrackingScore { pairs: 2, points: 9, epe: 2.0, pck: vec![0.25, 0.75] });
+        let a = PairScore { points: 2, unpredicted: 0, epe: Some(1.0), pck: vec![0.5, 1.0] };
+        let b = PairScore { points: 7, unpredicted: 1, epe: Some(3.0), pck: vec![0.0, 0.5] };
+        let c = PairScore { points: 1, unpredicted: 1, epe: None, pck: vec![0.0, 0.0] };
+        let s = average_pairs(&[Some(a), None, Some(b), Some(c)]).unwrap();
+        let want = TrackingScore {
+            pairs: 3,
+            points: 10,
+            unpredicted: 2,
+            epe: 2.0,
+            pck: vec![0.5 / 3.0, 1.5 / 3.0],
+        };
+        assert_eq!(s, want);
         assert_eq!(average_pairs(&[None, None]), None);
     }
 
@@ -412,7 +441,7 @@ mod tests {
         assert_eq!(keyframes(277, 10), [0, 27, 55, 83, 110, 138, 166, 193, 221, 249]);
         assert_eq!(keyframes(10, 10), (0..10).collect::<Vec<_>>());
         let gt = [[100.0, 100.0], [10.0, 10.0]];
-        let pred = [[123.9, 100.0], [34.0, 10.0]];
+        let pred = [[123.9, 100.0], [34.0, 10.0]].map(Some);
         let s = score_pair(&pred, &gt, &[true, true], &[pck_t_threshold(360, 480)]).unwrap();
         assert_eq!(s.pck, [0.5]);
     }
@@ -478,9 +507,10 @@ mod tests {
         .unwrap();
         assert_eq!(got.len(), 2);
         for (pred, want) in got.iter().zip([t0[0], t1[0]]) {
-            assert!(pred[0].iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{got:?}");
-            // Alpha is 0 in the first column: the origin.
-            assert_eq!(pred[1], [0.0; 3]);
+            let p = pred[0].unwrap();
+            assert!(p.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{got:?}");
+            // Alpha is 0 in the first column: no prediction.
+            assert_eq!(pred[1], None);
         }
         let e = predict_positions(&Ramp, &cam, &inputs, &[&[]], &[], &RenderSettings::default())
             .unwrap_err();

@@ -46,7 +46,12 @@ pub struct TrackingSummary {
     pub pairs: usize,
     /// Object bounding-box diagonal, world units.
     pub bbox_diagonal: f64,
-    /// Mean 3D end-point error, world units.
+    /// Scored points summed over the pairs.
+    pub points: usize,
+    /// Of those, the points where the model renders nothing at the query pixel (no
+    /// prediction: a miss at both PCK thresholds, left out of the EPE).
+    pub unpredicted: usize,
+    /// Mean 3D end-point error over the predicted points, world units.
     pub epe: f64,
     /// 3D PCK at 5% of the diagonal.
     pub pck_5: f64,
@@ -58,12 +63,15 @@ impl TrackingSummary {
     /// The scores as a Markdown section.
     pub fn markdown(&self) -> String {
         format!(
-            "\n## 3D tracking of {} ({} tracks, {} keyframes, {} pairs, bbox diagonal {:.3})\n\n\
+            "\n## 3D tracking of {} ({} tracks, {} keyframes, {} pairs, {} points, {} without a \
+             prediction, bbox diagonal {:.3})\n\n\
              | EPE | PCK@5% | PCK@10% |\n|---|---|---|\n| {:.4} | {:.3} | {:.3} |\n",
             self.model,
             self.tracks,
             self.keyframes.len(),
             self.pairs,
+            self.points,
+            self.unpredicted,
             self.bbox_diagonal,
             self.epe,
             self.pck_5,
@@ -85,11 +93,14 @@ pub struct PckTSummary {
     pub pairs: usize,
     /// Keypoints scored, summed over those pairs.
     pub points: usize,
+    /// Of those, the keypoints without a predicted pixel (nothing rendered at the source
+    /// pixel, or a prediction behind the target camera): misses, left out of the EPE.
+    pub unpredicted: usize,
     /// Correctness threshold `0.05·max(W, H)`, scene pixels (first keyframe's camera).
     pub threshold_px: f64,
     /// Mean over pairs of the fraction of correct keypoints.
     pub pck_t: f64,
-    /// Mean over pairs of the mean end-point error, scene pixels.
+    /// Mean over pairs of the mean end-point error of the predicted keypoints, scene pixels.
     pub epe_px: f64,
 }
 
@@ -97,13 +108,15 @@ impl PckTSummary {
     /// The scores as a Markdown section.
     pub fn markdown(&self) -> String {
         format!(
-            "\n## PCK-T of {} ({} keypoints, {} keyframes, {} pairs, {} points, threshold \
-             {:.1} px)\n\n| PCK-T | EPE (px) |\n|---|---|\n| {:.3} | {:.2} |\n",
+            "\n## PCK-T of {} ({} keypoints, {} keyframes, {} pairs, {} points, {} without a \
+             prediction, threshold {:.1} px)\n\n| PCK-T | EPE (px) |\n|---|---|\n| {:.3} | \
+             {:.2} |\n",
             self.model,
             self.keypoints,
             self.keyframes.len(),
             self.pairs,
             self.points,
+            self.unpredicted,
             self.threshold_px,
             self.pck_t,
             self.epe_px
@@ -190,6 +203,7 @@ fn evaluate_pck_t(
         keyframes: gt.frames,
         pairs: score.pairs,
         points: score.points,
+        unpredicted: score.unpredicted,
         threshold_px,
         pck_t: score.pck[0],
         epe_px: score.epe,
@@ -274,6 +288,8 @@ fn evaluate_tracks(
         keyframes: keys,
         pairs: score.pairs,
         bbox_diagonal: diag,
+        points: score.points,
+        unpredicted: score.unpredicted,
         epe: score.epe,
         pck_5: score.pck[0],
         pck_10: score.pck[1],
@@ -304,13 +320,15 @@ mod tests {
             keyframes: vec![0, 1],
             pairs: 4,
             bbox_diagonal: 2.0,
+            points: 30,
+            unpredicted: 2,
             epe: 0.01,
             pck_5: 0.5,
             pck_10: 1.0,
         };
         let md = s.markdown();
         assert!(md.contains("| 0.0100 | 0.500 | 1.000 |"), "{md}");
-        assert!(md.contains("4 tracks, 2 keyframes, 4 pairs"), "{md}");
+        assert!(md.contains("4 tracks, 2 keyframes, 4 pairs, 30 points, 2 without a prediction"));
     }
 
     #[test]
@@ -321,6 +339,7 @@ mod tests {
             keyframes: (0..10).collect(),
             pairs: 90,
             points: 1400,
+            unpredicted: 0,
             threshold_px: 24.0,
             pck_t: 0.9875,
             epe_px: 1.234,
@@ -328,7 +347,10 @@ mod tests {
         let md = s.markdown();
         assert!(md.contains("| PCK-T | EPE (px) |\n|---|---|\n| 0.988 | 1.23 |"), "{md}");
         assert!(
-            md.contains("(16 keypoints, 10 keyframes, 90 pairs, 1400 points, threshold 24.0 px)"),
+            md.contains(
+                "(16 keypoints, 10 keyframes, 90 pairs, 1400 points, 0 without a prediction, \
+                 threshold 24.0 px)"
+            ),
             "{md}"
         );
     }
