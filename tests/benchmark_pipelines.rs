@@ -4,6 +4,10 @@
 //! paper-windmill path, masked metrics and PCK-T) and `pipelines/fox.yaml` (the oracle's graph
 //! stages, and both recipes and profiles refining a drifting prior).
 
+use usplat4d::tables::TableReader;
+use usplat4d::tables::edges::EdgesTable;
+use usplat4d::tables::io::KEY_PARAMS;
+
 use crate::util::{Dir, copy_dir, repo};
 
 /// A copy of `pipelines/FILE` and `pipelines/data` in a fresh directory, so the run's lock
@@ -76,6 +80,15 @@ fn dycheck_pipeline_runs_out_of_the_box_on_the_windmill_fox() {
     assert!(files.iter().any(|f| f.ends_with(".md")), "{files:?}");
     let page = d.join("out/dycheck/fox-windmill/report/report.html");
     assert!(std::fs::read_to_string(page).unwrap().contains("PCK-T"));
+    // The profile reaches the vanilla continuation, the graph stages and USplat4D (and what
+    // depends on them), not the example, the import or the base fit.
+    let release = run(&d, "dycheck.yaml", &[&sets[..], &["profile=release"]].concat());
+    assert!(release.contains("18 stages: 12 run, 0 restored from run cache, 6 up to date"));
+    let edges = d.join("out/dycheck/fox-windmill/graph/edges/edges.parquet");
+    let reader = TableReader::open::<EdgesTable>(&edges).unwrap();
+    let params: serde_json::Value =
+        serde_json::from_str(&reader.metadata_value(KEY_PARAMS).unwrap()).unwrap();
+    assert_eq!(params["resolved"]["profile"], "release", "{params}");
 }
 
 #[test]
