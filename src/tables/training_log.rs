@@ -30,6 +30,9 @@ pub const LOSS_TERMS: &[&str] = &[
     "key_rotation",
     "key_rigidity_long",
     "key_rigidity_10",
+    "nonkey_isometry",
+    "nonkey_rigidity",
+    "nonkey_rotation",
     "knn_isometry",
     "knn_rigidity",
     "velocity",
@@ -45,8 +48,9 @@ pub struct TrainingLogTable;
 
 impl Table for TrainingLogTable {
     const NAME: &'static str = "training_log";
-    /// 2: `loss_nonkey_dweight`, `loss_nonkey_offset`.
-    const VERSION: u32 = 2;
+    /// 2: `loss_nonkey_dweight`, `loss_nonkey_offset`; 3: `loss_nonkey_isometry`,
+    /// `loss_nonkey_rigidity`, `loss_nonkey_rotation`.
+    const VERSION: u32 = 3;
     fn schema() -> SchemaRef {
         let mut f: Vec<Field> = vec![
             field("step", DataType::UInt32),

@@ -21,6 +21,10 @@
 //!   w_ij = |W_ij| / Σ_j |W_ij| (W initialised to the table's weights), with trainable rest
 //!   lengths D_ij (initialised to mean_t ‖p°_i − p°_j‖) in the release form; the paper form
 //!   keeps D_ij = ‖p°_j − p°_i‖ at the canonical frame fixed.
+//! - L^{motion,non-key} (App. A.2 with i ∈ V_n, j ∈ E_i): isometry (rest lengths at the
+//!   canonical frame), rigidity and relative rotation (Δ = 1) over each non-key's key edges
+//!   with the edges table's normalised weights, λ_iso, λ_rigid, λ_rot as for the keys
+//!   (paper; the release's L_nonkey has none).
 //! - Velocity and acceleration over keys and non-keys ([`MotionForm`]).
 //!
 //! Memory: O(T·(keys + non-keys)) plus O(T·keys) dual quaternions and O(non-key edges)
@@ -99,6 +103,8 @@ pub struct GraphSettings {
     pub motion: MotionForm,
     /// Weight of the key edge terms (paper 1; release λ_graph·λ_key = 2·100).
     pub key_motion: f64,
+    /// Weight of the non-key edge terms of L^{motion,non-key} (paper 1, release 0).
+    pub nonkey_motion: f64,
     /// λ_iso, λ_rigid, λ_rot of the paper form (1, 1, 0.01).
     pub lambda_iso_rigid_rot: [f64; 3],
     /// λ_vel, λ_acc (paper 0.01, 0.01; release 100, 1).
@@ -134,6 +140,7 @@ impl GraphSettings {
             dqb_rotation: if paper { 0.0 } else { 2.0 },
             motion: if paper { MotionForm::Paper } else { MotionForm::Release },
             key_motion: if paper { 1.0 } else { 200.0 },
+            nonkey_motion: if paper { 1.0 } else { 0.0 },
             lambda_iso_rigid_rot: [1.0, 1.0, 0.01],
             lambda_vel_acc: if paper { [0.01, 0.01] } else { [100.0, 1.0] },
             edge_keep_ratio: if paper { 1.0 } else { 0.8 },
@@ -186,10 +193,11 @@ pub struct GraphObjective {
     g_w_raw: Vec<f32>,
     g_rest: Vec<f32>,
     /// Non-key → key edges, CSR over `nonkeys`: `nk_off[u]..nk_off[u+1]`, compact key index,
-    /// the table's normalised weight `[E_n]`.
+    /// the table's normalised weight and the rest length at the canonical frame `[E_n]`.
     nk_off: Vec<usize>,
     nk_key: Vec<u32>,
     nk_w: Vec<f64>,
+    nk_rest: Vec<f64>,
     t_hat: Vec<u32>,
     /// λ / unit² of [`NonkeyWeights::Current`].
     nk_lambda: f64,
@@ -292,7 +300,7 @@ impl GraphObjective {
                 MotionForm::Release => ((0..t).map(d).sum::<f64>() / t.max(1) as f64) as f32,
             });
         }
-        let (mut nk_off, mut nk_key, mut nk_w) = (vec![0], vec![], vec![]);
+        let (mut nk_off, mut nk_key, mut nk_w, mut nk_rest) = (vec![0], vec![], vec![], vec![]);
         let (mut src_p, mut src_q) = (Vec::with_capacity(3 * nu), Vec::with_capacity(4 * nu));
         // the non-keys ordered by t̂ (stable), for the DQB term's groups
         let mut order: Vec<usize> = (0..nu).collect();
@@ -300,9 +308,13 @@ impl GraphObjective {
         for &u in &order {
             let list = &inp.nonkey_edges[u];
             let sum: f64 = list.iter().map(|e| e.1 as f64).sum();
+            let own = inp.initial.p(cf, inp.nonkeys[u] as usize);
             for &(k, w) in list {
                 nk_key.push(compact(k)?);
                 nk_w.push(if sum > 0.0 { w as f64 / sum } else { 1.0 / list.len() as f64 });
+                let pk = inp.initial.p(cf, k as usize);
+                let d = [0, 1, 2].map(|c| (pk[c] - own[c]) as f64);
+                nk_rest.push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
             }
             nk_off.push(nk_key.len());
             let th = inp.t_hat[u] as usize;
@@ -340,6 +352,7 @@ impl GraphObjective {
             nk_off,
             nk_key,
             nk_w,
+            nk_rest,
             t_hat,
             nk_lambda: inp.nonkey_lambda,
             pairs,
@@ -732,6 +745,8 @@ impl GraphObjective {
         }
         let key = timer.time("graph key motion", || self.key_motion(poses, rng_seed, grads));
         out.extend(key);
+        let nonkey = timer.time("graph non-key motion", || self.nonkey_motion(poses, grads));
+        out.extend(nonkey);
         // Smoothness over keys and non-keys.
         let [vel, acc] = timer.time("graph smoothness", || self.smoothness(poses, grads));
         let [lv, la] = s.lambda_vel_acc;
@@ -752,6 +767,51 @@ impl GraphObjective {
             (1.0, 1.0)
         };
         smoothness::smoothness(poses, &all, form, (nv, lv), (na, la), grads)
+    }
+
+    /// L^{motion,non-key}'s edge terms over every non-key's key edges, all frames, streamed
+    /// by blocks of frames (non-key i is the edge's source, so rigidity moves the keys in its
+    /// frame); returns their weighted contributions (none at weight 0).
+    fn nonkey_motion(&self, poses: &Poses, grads: &mut PoseGrads) -> Vec<(&'static str, f64)> {
+        let wm = self.s.nonkey_motion;
+        if wm == 0.0 {
+            return Vec::new();
+        }
+        let nk = self.keys.len();
+        let nodes: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
+        let src: Vec<u32> = (0..self.nonkeys.len())
+            .flat_map(|v| {
+                let run = self.nk_off[v + 1] - self.nk_off[v];
+                std::iter::repeat_n((nk + v) as u32, run)
+            })
+            .collect();
+        let es = EdgeSet { src: &src, dst: &self.nk_key, w: &self.nk_w };
+        let (ne, nt) = (src.len().max(1) as f64, self.frames);
+        // 1/(k|V|) per frame; summed over frames, or their mean.
+        let per = |d: usize| match self.s.reduction {
+            Reduction::Sum => 1.0 / ne,
+            Reduction::Mean => 1.0 / (ne * nt.saturating_sub(d).max(1) as f64),
+        };
+        let [li, lr, lo] = self.s.lambda_iso_rigid_rot;
+        let [iso, rigid, rot] = motion::stream_frames(poses, &nodes, 1, grads, |tr, g| {
+            let rest = &self.nk_rest;
+            let [i, r] = motion::isometry_rigidity(
+                tr,
+                es,
+                rest,
+                (per(0), wm * li),
+                (per(1), wm * lr),
+                g,
+                None,
+            );
+            let terms = &mut EdgeTerms { track: tr, edges: es, g, g_edges: None };
+            [i, r, motion::relative_rotation(terms, 1, per(1), wm * lo)]
+        });
+        vec![
+            ("nonkey_isometry", wm * li * iso),
+            ("nonkey_rigidity", wm * lr * rigid),
+            ("nonkey_rotation", wm * lo * rot),
+        ]
     }
 
     /// Key edge terms; returns their weighted contributions.
@@ -1272,6 +1332,44 @@ mod tests {
         for k in 0..2 {
             assert!((got[k] - want[k]).abs() < 1e-6 * want[k].abs(), "{got:?} vs {want:?}");
         }
+    }
+
+    /// L^{motion,non-key} is zero when the whole graph moves as one rigid body from the
+    /// canonical frame, and a non-key leaving its keys' rigid motion at one frame raises its
+    /// isometry and rigidity, not the keys' isometry.
+    #[test]
+    fn nonkey_motion_is_zero_for_a_rigid_motion_and_sees_a_displaced_nonkey() {
+        // p° at frame 0 (the canonical frame of the rest lengths), any rotations
+        let (mut obj, p0) = case(GraphSettings::defaults(Profile::Paper));
+        let mut poses = p0.clone();
+        for t in 0..p0.frames {
+            let a = 0.1 * t as f64;
+            let r = q4::normalize4([a.cos(), 0.3 * a.sin(), a.sin(), -0.2 * a.sin()]);
+            for i in 0..p0.n {
+                let x = obj.p0[i].map(|c| c as f64);
+                let p = q4::rotate(r, x);
+                poses.position[t * p0.n + i] = [p[0] + 0.5 * a, p[1], p[2] - a].map(|c| c as f32);
+                let q = p0.q(0, i).map(|c| c as f64);
+                poses.rotation[t * p0.n + i] = q4::mul(r, q).map(|c| c as f32);
+            }
+        }
+        let terms = |obj: &mut GraphObjective, poses: &Poses| {
+            let mut g = PoseGrads::zeros(poses.frames, poses.n);
+            let all = obj.evaluate(poses, &[1, 4], 7, &mut g, &mut PhaseTimes::default());
+            let get = |name: &str| all.iter().find(|x| x.0 == name).map(|x| x.1).unwrap();
+            ["nonkey_isometry", "nonkey_rigidity", "nonkey_rotation", "key_isometry"].map(get)
+        };
+        let rigid = terms(&mut obj, &poses);
+        assert!(rigid.iter().all(|&v| v.abs() < 1e-5), "{rigid:?}");
+        poses.position[5 * p0.n + 3][1] += 0.3; // non-key 3 at frame 5
+        let moved = terms(&mut obj, &poses);
+        assert!(moved[0] > 0.01 && moved[1] > 0.01, "{moved:?}");
+        assert!(moved[3].abs() < 1e-5, "{moved:?}");
+        let off = GraphSettings { nonkey_motion: 0.0, ..GraphSettings::defaults(Profile::Paper) };
+        let (mut obj, _) = case(off);
+        let mut g = PoseGrads::zeros(poses.frames, poses.n);
+        let all = obj.evaluate(&poses, &[1, 4], 7, &mut g, &mut PhaseTimes::default());
+        assert!(all.iter().all(|x| !x.0.starts_with("nonkey_iso")), "{all:?}");
     }
 
     #[test]

@@ -137,6 +137,10 @@ crate::stage_params! {
             /// Weight of the L2 penalty mean(offset²) on those offsets within L_non-key (scaled by
             /// λ_graph).
             nonkey_offset_l2: f64 => f64 [check::parsed] { paper "1e-3", release "1e-3", row "42" },
+            /// Weight of L^{motion,non-key}'s edge terms: App. A.2's isometry, rigidity and
+            /// relative rotation (λ_iso, λ_rigid, λ_rot) over each non-key's key edges E_i with
+            /// the edges table's weights (scaled by λ_graph; the release's L_nonkey has none).
+            nonkey_motion_weight: f64 => f64 [check::parsed] { paper "1", release "0", row "55" },
             /// Depth ratio r_z of U.
             r_z: f64 => f64 [check::parsed] { paper "0.01", release "0.1", row "15" },
         }
@@ -289,6 +293,7 @@ impl OptimizeSettings {
                 dqb: lg * g.dqb,
                 dqb_rotation: lg * g.dqb_rotation,
                 key_motion: lg * g.key_motion,
+                nonkey_motion: lg * v.nonkey_motion_weight,
                 lambda_vel_acc: [v.lambda_vel, v.lambda_acc],
                 edge_keep_ratio: v.edge_keep_ratio,
                 init: GraphInit {
