@@ -23,8 +23,8 @@
 //!   keeps D_ij = ‖p°_j − p°_i‖ at the canonical frame fixed.
 //! - L^{motion,non-key} (App. A.2 with i ∈ V_n, j ∈ E_i): isometry (rest lengths at the
 //!   canonical frame), rigidity and relative rotation (Δ = 1) over each non-key's key edges
-//!   with the edges table's normalised weights, λ_iso, λ_rigid, λ_rot as for the keys
-//!   (paper; the release's L_nonkey has none).
+//!   with the edges table's normalised weights, λ_iso, λ_rigid, λ_rot as for the keys, at the
+//!   batch frames like the DQB term (paper; the release's L_nonkey has none).
 //! - Velocity and acceleration over keys and non-keys ([`MotionForm`]).
 //!
 //! Memory: O(T·(keys + non-keys)) plus O(T·keys) dual quaternions and O(non-key edges)
@@ -745,7 +745,8 @@ impl GraphObjective {
         }
         let key = timer.time("graph key motion", || self.key_motion(poses, rng_seed, grads));
         out.extend(key);
-        let nonkey = timer.time("graph non-key motion", || self.nonkey_motion(poses, grads));
+        let nonkey =
+            timer.time("graph non-key motion", || self.nonkey_motion(poses, frames, grads));
         out.extend(nonkey);
         // Smoothness over keys and non-keys.
         let [vel, acc] = timer.time("graph smoothness", || self.smoothness(poses, grads));
@@ -769,10 +770,17 @@ impl GraphObjective {
         smoothness::smoothness(poses, &all, form, (nv, lv), (na, la), grads)
     }
 
-    /// L^{motion,non-key}'s edge terms over every non-key's key edges, all frames, streamed
-    /// by blocks of frames (non-key i is the edge's source, so rigidity moves the keys in its
-    /// frame); returns their weighted contributions (none at weight 0).
-    fn nonkey_motion(&self, poses: &Poses, grads: &mut PoseGrads) -> Vec<(&'static str, f64)> {
+    /// L^{motion,non-key}'s edge terms over every non-key's key edges at the batch `frames`,
+    /// as the DQB term (frame t with t − 1 as context: non-key i is the edge's source, so
+    /// rigidity moves the keys in its frame); returns their weighted contributions (none at
+    /// weight 0). Frames are evaluated in parallel, a thread's worth at a time, and their
+    /// gradients added in batch order.
+    fn nonkey_motion(
+        &self,
+        poses: &Poses,
+        frames: &[usize],
+        grads: &mut PoseGrads,
+    ) -> Vec<(&'static str, f64)> {
         let wm = self.s.nonkey_motion;
         if wm == 0.0 {
             return Vec::new();
@@ -786,27 +794,39 @@ impl GraphObjective {
             })
             .collect();
         let es = EdgeSet { src: &src, dst: &self.nk_key, w: &self.nk_w };
-        let (ne, nt) = (src.len().max(1) as f64, self.frames);
-        // 1/(k|V|) per frame; summed over frames, or their mean.
-        let per = |d: usize| match self.s.reduction {
-            Reduction::Sum => 1.0 / ne,
-            Reduction::Mean => 1.0 / (ne * nt.saturating_sub(d).max(1) as f64),
-        };
+        // 1/(k|V|) per frame; summed over the batch frames, or their mean.
+        let norm = 1.0
+            / (src.len().max(1)
+                * if self.s.reduction == Reduction::Mean { frames.len() } else { 1 })
+            .max(1) as f64;
         let [li, lr, lo] = self.s.lambda_iso_rigid_rot;
-        let [iso, rigid, rot] = motion::stream_frames(poses, &nodes, 1, grads, |tr, g| {
-            let rest = &self.nk_rest;
-            let [i, r] = motion::isometry_rigidity(
-                tr,
+        let one = |t: usize| {
+            let track = Track::gather_frames(poses, &nodes, t.saturating_sub(1)..t + 1, t.min(1));
+            let mut g = TrackGrad::zeros(&track);
+            let [iso, rigid] = motion::isometry_rigidity(
+                &track,
                 es,
-                rest,
-                (per(0), wm * li),
-                (per(1), wm * lr),
-                g,
+                &self.nk_rest,
+                (norm, wm * li),
+                (norm, wm * lr),
+                &mut g,
                 None,
             );
-            let terms = &mut EdgeTerms { track: tr, edges: es, g, g_edges: None };
-            [i, r, motion::relative_rotation(terms, 1, per(1), wm * lo)]
-        });
+            let terms = &mut EdgeTerms { track: &track, edges: es, g: &mut g, g_edges: None };
+            let rot = motion::relative_rotation(terms, 1, norm, wm * lo);
+            (track, g, [iso, rigid, rot])
+        };
+        let mut sums = [0.0; 3];
+        for chunk in frames.chunks(rayon::current_num_threads().max(1)) {
+            let parts: Vec<_> = chunk.par_iter().map(|&t| one(t)).collect();
+            for (track, g, v) in parts {
+                g.scatter(&track, &nodes, self.n, grads);
+                for (s, x) in sums.iter_mut().zip(v) {
+                    *s += x;
+                }
+            }
+        }
+        let [iso, rigid, rot] = sums;
         vec![
             ("nonkey_isometry", wm * li * iso),
             ("nonkey_rigidity", wm * lr * rigid),
@@ -1335,8 +1355,8 @@ mod tests {
     }
 
     /// L^{motion,non-key} is zero when the whole graph moves as one rigid body from the
-    /// canonical frame, and a non-key leaving its keys' rigid motion at one frame raises its
-    /// isometry and rigidity, not the keys' isometry.
+    /// canonical frame, and a non-key leaving its keys' rigid motion at a batch frame raises
+    /// its isometry and rigidity, not the keys' isometry; at another frame it does not count.
     #[test]
     fn nonkey_motion_is_zero_for_a_rigid_motion_and_sees_a_displaced_nonkey() {
         // p° at frame 0 (the canonical frame of the rest lengths), any rotations
@@ -1355,16 +1375,20 @@ mod tests {
         }
         let terms = |obj: &mut GraphObjective, poses: &Poses| {
             let mut g = PoseGrads::zeros(poses.frames, poses.n);
-            let all = obj.evaluate(poses, &[1, 4], 7, &mut g, &mut PhaseTimes::default());
+            let all = obj.evaluate(poses, &[0, 5], 7, &mut g, &mut PhaseTimes::default());
             let get = |name: &str| all.iter().find(|x| x.0 == name).map(|x| x.1).unwrap();
             ["nonkey_isometry", "nonkey_rigidity", "nonkey_rotation", "key_isometry"].map(get)
         };
         let rigid = terms(&mut obj, &poses);
         assert!(rigid.iter().all(|&v| v.abs() < 1e-5), "{rigid:?}");
-        poses.position[5 * p0.n + 3][1] += 0.3; // non-key 3 at frame 5
+        poses.position[5 * p0.n + 3][1] += 0.3; // non-key 3 at frame 5, a batch frame
         let moved = terms(&mut obj, &poses);
         assert!(moved[0] > 0.01 && moved[1] > 0.01, "{moved:?}");
         assert!(moved[3].abs() < 1e-5, "{moved:?}");
+        poses.position[5 * p0.n + 3][1] -= 0.3;
+        poses.position[7 * p0.n + 3][1] += 0.3; // and at frame 7, outside the batch
+        let outside = terms(&mut obj, &poses);
+        assert!(outside.iter().all(|&v| v.abs() < 1e-5), "{outside:?}");
         let off = GraphSettings { nonkey_motion: 0.0, ..GraphSettings::defaults(Profile::Paper) };
         let (mut obj, _) = case(off);
         let mut g = PoseGrads::zeros(poses.frames, poses.n);
@@ -1374,10 +1398,10 @@ mod tests {
 
     #[test]
     fn graph_terms_do_not_depend_on_the_thread_count() {
-        let run = |threads: usize| {
+        let run = |threads: usize, profile: Profile| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| {
-                let (mut obj, poses) = case(GraphSettings::defaults(Profile::Release));
+                let (mut obj, poses) = case(GraphSettings::defaults(profile));
                 let mut g = PoseGrads::zeros(poses.frames, poses.n);
                 let terms =
                     obj.evaluate(&poses, &[1, 4, 20], 7, &mut g, &mut PhaseTimes::default());
@@ -1390,7 +1414,9 @@ mod tests {
                 (terms.iter().map(|t| t.1.to_bits()).collect::<Vec<_>>(), pose, own)
             })
         };
-        assert_eq!(run(1), run(3));
+        for profile in [Profile::Paper, Profile::Release] {
+            assert_eq!(run(1, profile), run(3, profile), "{profile:?}");
+        }
     }
 
     #[test]
