@@ -193,10 +193,12 @@ pub struct GraphObjective {
     g_w_raw: Vec<f32>,
     g_rest: Vec<f32>,
     /// Non-key → key edges, CSR over `nonkeys`: `nk_off[u]..nk_off[u+1]`, compact key index,
-    /// the table's normalised weight and the rest length at the canonical frame `[E_n]`.
+    /// the table's normalised weight, the source's index in [`Self::nodes`] and the rest
+    /// length at the canonical frame `[E_n]`.
     nk_off: Vec<usize>,
     nk_key: Vec<u32>,
     nk_w: Vec<f64>,
+    nk_src: Vec<u32>,
     nk_rest: Vec<f64>,
     t_hat: Vec<u32>,
     /// λ / unit² of [`NonkeyWeights::Current`].
@@ -290,31 +292,26 @@ impl GraphObjective {
             ksrc.push(ca);
             kdst.push(cb);
             w_raw.push(w);
-            let d = |f: usize| {
-                let (pa, pb) = (inp.initial.p(f, a as usize), inp.initial.p(f, b as usize));
-                let d = [0, 1, 2].map(|c| (pb[c] - pa[c]) as f64);
-                (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
-            };
+            let d = |f: usize| distance(inp.initial, f, a, b);
             rest.push(match s.motion {
                 MotionForm::Paper => d(cf) as f32,
                 MotionForm::Release => ((0..t).map(d).sum::<f64>() / t.max(1) as f64) as f32,
             });
         }
-        let (mut nk_off, mut nk_key, mut nk_w, mut nk_rest) = (vec![0], vec![], vec![], vec![]);
+        let (mut nk_off, mut nk_key, mut nk_w) = (vec![0], vec![], vec![]);
+        let (mut nk_src, mut nk_rest) = (vec![], vec![]);
         let (mut src_p, mut src_q) = (Vec::with_capacity(3 * nu), Vec::with_capacity(4 * nu));
         // the non-keys ordered by t̂ (stable), for the DQB term's groups
         let mut order: Vec<usize> = (0..nu).collect();
         order.sort_by_key(|&u| inp.t_hat[u]);
-        for &u in &order {
+        for (v, &u) in order.iter().enumerate() {
             let list = &inp.nonkey_edges[u];
             let sum: f64 = list.iter().map(|e| e.1 as f64).sum();
-            let own = inp.initial.p(cf, inp.nonkeys[u] as usize);
             for &(k, w) in list {
                 nk_key.push(compact(k)?);
                 nk_w.push(if sum > 0.0 { w as f64 / sum } else { 1.0 / list.len() as f64 });
-                let pk = inp.initial.p(cf, k as usize);
-                let d = [0, 1, 2].map(|c| (pk[c] - own[c]) as f64);
-                nk_rest.push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+                nk_src.push((inp.keys.len() + v) as u32);
+                nk_rest.push(distance(inp.initial, cf, inp.nonkeys[u], k));
             }
             nk_off.push(nk_key.len());
             let th = inp.t_hat[u] as usize;
@@ -352,6 +349,7 @@ impl GraphObjective {
             nk_off,
             nk_key,
             nk_w,
+            nk_src,
             nk_rest,
             t_hat,
             nk_lambda: inp.nonkey_lambda,
@@ -756,10 +754,15 @@ impl GraphObjective {
         out
     }
 
+    /// The keys, then the non-keys: the Gaussians of the smoothness and non-key edge terms.
+    fn nodes(&self) -> Vec<u32> {
+        self.keys.iter().chain(&self.nonkeys).copied().collect()
+    }
+
     /// Velocity and acceleration (unweighted) over keys and non-keys; adds the λ-weighted
     /// gradients.
     fn smoothness(&self, poses: &Poses, grads: &mut PoseGrads) -> [f64; 2] {
-        let all: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
+        let all = self.nodes();
         let [lv, la] = self.s.lambda_vel_acc;
         let form = self.s.motion;
         let (nv, na) = if form == MotionForm::Release || self.s.reduction == Reduction::Mean {
@@ -785,18 +788,11 @@ impl GraphObjective {
         if wm == 0.0 {
             return Vec::new();
         }
-        let nk = self.keys.len();
-        let nodes: Vec<u32> = self.keys.iter().chain(&self.nonkeys).copied().collect();
-        let src: Vec<u32> = (0..self.nonkeys.len())
-            .flat_map(|v| {
-                let run = self.nk_off[v + 1] - self.nk_off[v];
-                std::iter::repeat_n((nk + v) as u32, run)
-            })
-            .collect();
-        let es = EdgeSet { src: &src, dst: &self.nk_key, w: &self.nk_w };
+        let nodes = self.nodes();
+        let es = EdgeSet { src: &self.nk_src, dst: &self.nk_key, w: &self.nk_w };
         // 1/(k|V|) per frame; summed over the batch frames, or their mean.
         let norm = 1.0
-            / (src.len().max(1)
+            / (self.nk_src.len().max(1)
                 * if self.s.reduction == Reduction::Mean { frames.len() } else { 1 })
             .max(1) as f64;
         let [li, lr, lo] = self.s.lambda_iso_rigid_rot;
@@ -933,6 +929,13 @@ impl GraphObjective {
         }
         out
     }
+}
+
+/// ‖p_b − p_a‖ of Gaussians `a` and `b` of `poses` at frame `f` (a canonical rest length).
+fn distance(poses: &Poses, f: usize, a: u32, b: u32) -> f64 {
+    let (pa, pb) = (poses.p(f, a as usize), poses.p(f, b as usize));
+    let d = [0, 1, 2].map(|c| (pb[c] - pa[c]) as f64);
+    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
 }
 
 #[cfg(test)]
