@@ -1,9 +1,11 @@
 //! Math shared by the renderer, the importers, the stages and the optimiser: quaternions and
 //! their vector-Jacobian products ([`quat`] in f32, [`quat64`] in f64, with the rotation
 //! matrix / quaternion conversions of the upstream sign conventions), dual quaternion
-//! blending ([`dqb`]) and continuous 6D rotations ([`rot6d`]).
+//! blending ([`dqb`]), continuous 6D rotations ([`rot6d`]) and f64 lanes for vectorised
+//! sweeps ([`lanes`]).
 
 pub mod dqb;
+pub mod lanes;
 pub mod quat;
 pub mod quat64;
 pub mod rot6d;

@@ -15,9 +15,29 @@ pub type V3 = [f64; 3];
 /// A 3x3 matrix, row-major: `m[row][col]`.
 pub type M3 = [[f64; 3]; 3];
 
+/// The arithmetic of the generic quaternion functions: `f64`, or lanes of it
+/// ([`super::lanes::F4`]).
+pub trait Real:
+    Copy
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<Output = Self>
+    + std::ops::Neg<Output = Self>
+{
+}
+
+impl<T> Real for T where
+    T: Copy
+        + std::ops::Add<Output = T>
+        + std::ops::Sub<Output = T>
+        + std::ops::Mul<Output = T>
+        + std::ops::Neg<Output = T>
+{
+}
+
 /// Hamilton product `a ⊗ b`.
 #[inline]
-pub fn mul(a: Q, b: Q) -> Q {
+pub fn mul<T: Real>(a: [T; 4], b: [T; 4]) -> [T; 4] {
     let [aw, ax, ay, az] = a;
     let [bw, bx, by, bz] = b;
     [
@@ -31,13 +51,13 @@ pub fn mul(a: Q, b: Q) -> Q {
 /// VJP of [`mul`]: `(g_a, g_b) = (g ⊗ b*, a* ⊗ g)` (left and right multiplication by a
 /// quaternion are linear maps whose transposes multiply by its conjugate).
 #[inline]
-pub fn mul_vjp(a: Q, b: Q, g: Q) -> (Q, Q) {
+pub fn mul_vjp<T: Real>(a: [T; 4], b: [T; 4], g: [T; 4]) -> ([T; 4], [T; 4]) {
     (mul(g, conj(b)), mul(conj(a), g))
 }
 
 /// Conjugate `(w, −x, −y, −z)`.
 #[inline]
-pub fn conj(q: Q) -> Q {
+pub fn conj<T: Real>(q: [T; 4]) -> [T; 4] {
     [q[0], -q[1], -q[2], -q[3]]
 }
 
@@ -49,7 +69,7 @@ pub fn norm(q: Q) -> f64 {
 
 /// Dot product of four components.
 #[inline]
-pub fn dot4(a: Q, b: Q) -> f64 {
+pub fn dot4<T: Real>(a: [T; 4], b: [T; 4]) -> T {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 }
 

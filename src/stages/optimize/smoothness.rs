@@ -21,6 +21,7 @@ use rayon::prelude::*;
 use super::motion::MotionForm;
 use super::poses::{PoseGrads, Poses};
 use super::sign;
+use crate::math::lanes::{F4, LANES};
 use crate::math::quat64::{self as q4, Q, V3};
 
 /// Gaussians per chunk of the sweep (a chunk's state is about 140 kB).
@@ -97,24 +98,28 @@ pub fn smoothness(
 /// A chunk's part of one frame's position and rotation gradient rows.
 type RowPart<'a> = (&'a mut [[f32; 3]], &'a mut [[f32; 4]]);
 
-/// One Gaussian at one frame of a [`sweep`]: its pose in f64 and the gradient so far.
+/// Four Gaussians (the lanes) at one frame of a [`sweep`]: their poses in f64 and the
+/// gradients so far.
 #[derive(Debug, Clone, Copy, Default)]
 struct Slot {
-    p: V3,
+    p: [F4; 3],
     /// Raw rotation, its unit quaternion and 1/norm (0 for a zero q).
-    q: Q,
-    u: Q,
-    qn: f64,
+    q: [F4; 4],
+    u: [F4; 4],
+    qn: F4,
     /// d/dp, d/d(raw q) and d/d(unit q).
-    gp: V3,
-    gq: Q,
-    gu: Q,
+    gp: [F4; 3],
+    gq: [F4; 4],
+    gu: [F4; 4],
 }
 
 /// The sums of [`smoothness`] over `m` Gaussians and `frames` frames (unnormalised
 /// `[velocity, acceleration]`), frames in order: `load(t, k)` gives Gaussian k's position
 /// and raw rotation at frame t, and `emit(t, k, g_p, g_q)` receives its gradient there
 /// (`k_v, k_a` = scale · norm of each term), once per (t, k) when frame t is complete.
+/// Gaussians run four at a time in the lanes of [`F4`] (the last block padded with
+/// identity poses that are never emitted), each lane with the arithmetic of one Gaussian;
+/// the sums add the Gaussians' terms in order.
 fn sweep(
     frames: usize,
     m: usize,
@@ -127,102 +132,129 @@ fn sweep(
     if frames < 2 || m == 0 {
         return [v, a];
     }
-    // Three frames of state (ring by t mod 3), and per Gaussian the relative rotation
-    // r_{t−1} with its gradient so far (paper form).
-    let mut st = vec![Slot::default(); 3 * m];
-    let mut r_prev = vec![[0.0; 4]; m];
-    let mut g_prev = vec![[0.0; 4]; m];
+    let nb = m.div_ceil(LANES);
+    let lanes = |b: usize| (0..LANES).filter(move |l| b * LANES + l < m);
+    let (kv, ka) = (F4::splat(kv), F4::splat(ka));
+    let (zero, one, two) = (F4::splat(0.0), F4::splat(1.0), F4::splat(2.0));
+    // Three frames of state (ring by t mod 3), and per block the relative rotation r_{t−1}
+    // with its gradient so far (paper form).
+    let mut st = vec![Slot::default(); 3 * nb];
+    let mut r_prev = vec![[zero; 4]; nb];
+    let mut g_prev = vec![[zero; 4]; nb];
     let mut flush = |st: &[Slot], t: usize| {
-        for k in 0..m {
-            let s = &st[(t % 3) * m + k];
+        for b in 0..nb {
+            let s = &st[(t % 3) * nb + b];
             // normalize's VJP (g − u⟨u, g⟩)/‖q‖, by the reciprocal norm kept in `qn`
             let d = q4::dot4(s.u, s.gu);
-            let gu = [0, 1, 2, 3].map(|c| (s.gu[c] - s.u[c] * d) * s.qn);
-            emit(t, k, s.gp, [0, 1, 2, 3].map(|c| s.gq[c] + gu[c]));
+            let gq = [0, 1, 2, 3].map(|c| s.gq[c] + (s.gu[c] - s.u[c] * d) * s.qn);
+            for l in lanes(b) {
+                emit(t, b * LANES + l, s.gp.map(|x| x.0[l]), gq.map(|x| x.0[l]));
+            }
         }
     };
+    // per Gaussian of a block: its two velocity and two acceleration terms, added to v and
+    // a in the scalar order
+    let mut sums = vec![[zero; 4]; nb];
     for t in 0..frames {
-        let s0 = (t % 3) * m;
-        for k in 0..m {
-            let (p, q) = load(t, k);
+        let s0 = (t % 3) * nb;
+        for b in 0..nb {
+            let (mut p, mut q) = ([zero; 3], [zero, zero, zero, zero]);
+            q[0] = one;
+            for l in lanes(b) {
+                let (pl, ql) = load(t, b * LANES + l);
+                for c in 0..3 {
+                    p[c].0[l] = pl[c];
+                }
+                for c in 0..4 {
+                    q[c].0[l] = ql[c];
+                }
+            }
             // q/‖q‖ (zero q: identity, zero gradient) and 1/‖q‖
-            let len = q4::norm(q);
-            let (u, qn) = if len > 0.0 {
-                let inv = 1.0 / len;
-                (q.map(|x| x * inv), inv)
-            } else {
-                ([1.0, 0.0, 0.0, 0.0], 0.0)
-            };
-            st[s0 + k] = Slot { p, q, u, qn, ..Slot::default() };
+            let len = q4::dot4(q, q).sqrt();
+            let pos = len.gt0();
+            let inv = one / len;
+            let u = [0, 1, 2, 3].map(|c| F4::select(pos, q[c] * inv, [one, zero, zero, zero][c]));
+            let qn = F4::select(pos, inv, zero);
+            st[s0 + b] = Slot { p, q, u, qn, ..Slot::default() };
         }
         if t == 0 {
             continue;
         }
-        let (s1, s2) = (((t - 1) % 3) * m, ((t + 1) % 3) * m);
-        for k in 0..m {
-            // frames t−2 (a stale slot when t = 1, unused then), t−1, t of Gaussian k
-            let [x2, x1, x0] = three(&mut st, s2 + k, s1 + k, s0 + k);
+        let (s1, s2) = (((t - 1) % 3) * nb, ((t + 1) % 3) * nb);
+        for b in 0..nb {
+            // frames t−2 (a stale slot when t = 1, unused then), t−1, t of block b
+            let [x2, x1, x0] = three(&mut st, s2 + b, s1 + b, s0 + b);
+            let [v1, v2, a1, a2] = &mut sums[b];
             match form {
                 MotionForm::Paper => {
                     let d = sub(x1.p, x0.p);
-                    v += l1(d);
-                    let gd = d.map(|x| kv * sign(x));
+                    *v1 = l1(d);
+                    let gd = d.map(|x| kv * sign4(x));
                     add(&mut x1.gp, gd);
                     add(&mut x0.gp, gd.map(|x| -x));
                     let r_t = q4::mul(x1.u, q4::conj(x0.u));
                     let (dev, s) = deviation(r_t);
-                    v += l1(dev);
-                    let mut g_t = dev.map(|x| kv * s * sign(x));
+                    *v2 = l1(dev);
+                    let mut g_t = dev.map(|x| kv * s * sign4(x));
                     if t >= 2 {
-                        let d = [0, 1, 2].map(|c| x2.p[c] - 2.0 * x1.p[c] + x0.p[c]);
-                        a += l1(d);
-                        let gd = d.map(|x| ka * sign(x));
+                        let d = [0, 1, 2].map(|c| x2.p[c] - two * x1.p[c] + x0.p[c]);
+                        *a1 = l1(d);
+                        let gd = d.map(|x| ka * sign4(x));
                         add(&mut x2.gp, gd);
-                        add(&mut x1.gp, gd.map(|x| -2.0 * x));
+                        add(&mut x1.gp, gd.map(|x| -two * x));
                         add(&mut x0.gp, gd);
-                        let (dev, s) = deviation(q4::mul(r_prev[k], q4::conj(r_t)));
-                        a += l1(dev);
-                        let gr = dev.map(|x| ka * s * sign(x));
-                        let (g_r1, g_r2c) = q4::mul_vjp(r_prev[k], q4::conj(r_t), gr);
-                        add(&mut g_prev[k], g_r1);
+                        let (dev, s) = deviation(q4::mul(r_prev[b], q4::conj(r_t)));
+                        *a2 = l1(dev);
+                        let gr = dev.map(|x| ka * s * sign4(x));
+                        let (g_r1, g_r2c) = q4::mul_vjp(r_prev[b], q4::conj(r_t), gr);
+                        add(&mut g_prev[b], g_r1);
                         add(&mut g_t, q4::conj(g_r2c));
                         // r_{t−1} = u_{t−2} u_{t−1}* has no more terms: chain it.
-                        let (ga, gbc) = q4::mul_vjp(x2.u, q4::conj(x1.u), g_prev[k]);
+                        let (ga, gbc) = q4::mul_vjp(x2.u, q4::conj(x1.u), g_prev[b]);
                         add(&mut x2.gu, ga);
                         add(&mut x1.gu, q4::conj(gbc));
                     }
-                    r_prev[k] = r_t;
-                    g_prev[k] = g_t;
+                    r_prev[b] = r_t;
+                    g_prev[b] = g_t;
                 }
                 MotionForm::Release => {
+                    let (three, four) = (F4::splat(3.0), F4::splat(4.0));
                     let d = sub(x0.p, x1.p);
                     let dq = [0, 1, 2, 3].map(|c| x0.q[c] - x1.q[c]);
-                    v += d.iter().map(|x| x * x).sum::<f64>() / 3.0;
-                    v += dq.iter().map(|x| x * x).sum::<f64>() / 4.0;
-                    let gd = d.map(|x| kv * 2.0 * x / 3.0);
-                    let gq = dq.map(|x| kv * 2.0 * x / 4.0);
+                    *v1 = sq(d) / three;
+                    *v2 = sq(dq) / four;
+                    let gd = d.map(|x| kv * two * x / three);
+                    let gq = dq.map(|x| kv * two * x / four);
                     add(&mut x0.gp, gd);
                     add(&mut x1.gp, gd.map(|x| -x));
                     add(&mut x0.gq, gq);
                     add(&mut x1.gq, gq.map(|x| -x));
                     if t >= 2 {
-                        let d = [0, 1, 2].map(|c| x2.p[c] - 2.0 * x1.p[c] + x0.p[c]);
-                        let dq = [0, 1, 2, 3].map(|c| x2.q[c] - 2.0 * x1.q[c] + x0.q[c]);
-                        let (lp, lq) = (l2(&d), l2(&dq));
-                        a += lp + lq;
-                        if lp > 0.0 {
-                            let gd = d.map(|x| ka * x / lp);
-                            add(&mut x2.gp, gd);
-                            add(&mut x1.gp, gd.map(|x| -2.0 * x));
-                            add(&mut x0.gp, gd);
-                        }
-                        if lq > 0.0 {
-                            let gq = dq.map(|x| ka * x / lq);
-                            add(&mut x2.gq, gq);
-                            add(&mut x1.gq, gq.map(|x| -2.0 * x));
-                            add(&mut x0.gq, gq);
-                        }
+                        let d = [0, 1, 2].map(|c| x2.p[c] - two * x1.p[c] + x0.p[c]);
+                        let dq = [0, 1, 2, 3].map(|c| x2.q[c] - two * x1.q[c] + x0.q[c]);
+                        let (lp, lq) = (sq(d).sqrt(), sq(dq).sqrt());
+                        *a1 = lp + lq;
+                        *a2 = zero;
+                        // the L2 norms' gradients, where they are > 0
+                        let gd = d.map(|x| ka * x / lp);
+                        add_where(lp.gt0(), &mut x2.gp, gd);
+                        add_where(lp.gt0(), &mut x1.gp, gd.map(|x| -two * x));
+                        add_where(lp.gt0(), &mut x0.gp, gd);
+                        let gq = dq.map(|x| ka * x / lq);
+                        add_where(lq.gt0(), &mut x2.gq, gq);
+                        add_where(lq.gt0(), &mut x1.gq, gq.map(|x| -two * x));
+                        add_where(lq.gt0(), &mut x0.gq, gq);
                     }
+                }
+            }
+        }
+        for (b, [v1, v2, a1, a2]) in sums.iter().enumerate() {
+            for l in lanes(b) {
+                v += v1.0[l];
+                v += v2.0[l];
+                if t >= 2 {
+                    a += a1.0[l];
+                    a += a2.0[l];
                 }
             }
         }
@@ -232,10 +264,10 @@ fn sweep(
     }
     if form == MotionForm::Paper {
         // the last r_{T−1} = u_{T−2} u_{T−1}*
-        let (s1, s0) = (((frames - 2) % 3) * m, ((frames - 1) % 3) * m);
-        for k in 0..m {
-            let [x1, x0] = st.get_disjoint_mut([s1 + k, s0 + k]).expect("distinct slots");
-            let (ga, gbc) = q4::mul_vjp(x1.u, q4::conj(x0.u), g_prev[k]);
+        let (s1, s0) = (((frames - 2) % 3) * nb, ((frames - 1) % 3) * nb);
+        for b in 0..nb {
+            let [x1, x0] = st.get_disjoint_mut([s1 + b, s0 + b]).expect("distinct slots");
+            let (ga, gbc) = q4::mul_vjp(x1.u, q4::conj(x0.u), g_prev[b]);
             add(&mut x1.gu, ga);
             add(&mut x0.gu, q4::conj(gbc));
         }
@@ -251,32 +283,50 @@ fn three(st: &mut [Slot], c: usize, b: usize, a: usize) -> [&mut Slot; 3] {
     st.get_disjoint_mut([c, b, a]).expect("distinct slots")
 }
 
-/// The relative rotation's deviation from the identity, `std(r) − 1`, and the sign applied.
+/// The relative rotation's deviation from the identity, `std(r) − 1`, and the sign applied
+/// (per lane).
 #[inline]
-fn deviation(r: Q) -> (Q, f64) {
-    let (r, s) = if r[0] < 0.0 { (r.map(|x| -x), -1.0) } else { (r, 1.0) };
-    ([r[0] - 1.0, r[1], r[2], r[3]], s)
+fn deviation(r: [F4; 4]) -> ([F4; 4], F4) {
+    let neg = r[0].lt0();
+    let r = r.map(|x| F4::select(neg, -x, x));
+    ([r[0] - F4::splat(1.0), r[1], r[2], r[3]], F4::select(neg, F4::splat(-1.0), F4::splat(1.0)))
+}
+
+/// [`sign`] per lane.
+#[inline]
+fn sign4(x: F4) -> F4 {
+    x.map(sign)
 }
 
 #[inline]
-fn sub(a: V3, b: V3) -> V3 {
+fn sub(a: [F4; 3], b: [F4; 3]) -> [F4; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
+/// Σ |x_c|, per lane.
 #[inline]
-fn l1<const D: usize>(x: [f64; D]) -> f64 {
-    x.iter().map(|v| v.abs()).sum()
+fn l1<const D: usize>(x: [F4; D]) -> F4 {
+    x.into_iter().map(F4::abs).reduce(|s, v| s + v).expect("D > 0")
+}
+
+/// Σ x_c², per lane.
+#[inline]
+fn sq<const D: usize>(x: [F4; D]) -> F4 {
+    x.into_iter().map(|v| v * v).reduce(|s, v| s + v).expect("D > 0")
 }
 
 #[inline]
-fn l2(x: &[f64]) -> f64 {
-    x.iter().map(|v| v * v).sum::<f64>().sqrt()
-}
-
-#[inline]
-fn add<const D: usize>(a: &mut [f64; D], b: [f64; D]) {
+fn add<T: Copy + std::ops::Add<Output = T>, const D: usize>(a: &mut [T; D], b: [T; D]) {
     for c in 0..D {
-        a[c] += b[c];
+        a[c] = a[c] + b[c];
+    }
+}
+
+/// `a += b` in the lanes where `c`.
+#[inline]
+fn add_where<const D: usize>(c: [bool; LANES], a: &mut [F4; D], b: [F4; D]) {
+    for k in 0..D {
+        a[k] = F4::select(c, a[k] + b[k], a[k]);
     }
 }
 
