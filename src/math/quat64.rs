@@ -36,7 +36,7 @@ impl<T> Real for T where
 }
 
 /// Hamilton product `a ⊗ b`.
-#[inline]
+#[inline(always)]
 pub fn mul<T: Real>(a: [T; 4], b: [T; 4]) -> [T; 4] {
     let [aw, ax, ay, az] = a;
     let [bw, bx, by, bz] = b;
@@ -50,13 +50,13 @@ pub fn mul<T: Real>(a: [T; 4], b: [T; 4]) -> [T; 4] {
 
 /// VJP of [`mul`]: `(g_a, g_b) = (g ⊗ b*, a* ⊗ g)` (left and right multiplication by a
 /// quaternion are linear maps whose transposes multiply by its conjugate).
-#[inline]
+#[inline(always)]
 pub fn mul_vjp<T: Real>(a: [T; 4], b: [T; 4], g: [T; 4]) -> ([T; 4], [T; 4]) {
     (mul(g, conj(b)), mul(conj(a), g))
 }
 
 /// Conjugate `(w, −x, −y, −z)`.
-#[inline]
+#[inline(always)]
 pub fn conj<T: Real>(q: [T; 4]) -> [T; 4] {
     [q[0], -q[1], -q[2], -q[3]]
 }
@@ -68,7 +68,7 @@ pub fn norm(q: Q) -> f64 {
 }
 
 /// Dot product of four components.
-#[inline]
+#[inline(always)]
 pub fn dot4<T: Real>(a: [T; 4], b: [T; 4]) -> T {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 }

@@ -19,7 +19,8 @@
 //!
 //! Buffers live in [`frame::Frame`]s reused across renders of the same sizes; a render
 //! does one readback (images, statistics, and the pair count, which grows the intersection
-//! buffer and re-renders in the rare frame that overflows it).
+//! buffer and re-renders in the frame that overflows it; later frames start at the grown
+//! size).
 
 mod context;
 mod device;
@@ -32,6 +33,9 @@ pub use context::GpuContext;
 pub use device::{AnyRenderer, AnySaved};
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use rayon::prelude::*;
 
 use frame::{
     Frame, FrameKey, FramePool, PooledFrame, bind, dispatch, grid, read_words, sort_passes,
@@ -49,6 +53,9 @@ use super::{
 pub struct GpuRenderer {
     ctx: Arc<GpuContext>,
     pool: Arc<FramePool>,
+    /// The largest intersection capacity a frame has needed: later frames start there, so
+    /// that a scene whose frames all overflow the first guess grows it once, not per frame.
+    pair_cap: Arc<AtomicUsize>,
     junk: bool,
 }
 
@@ -88,6 +95,7 @@ impl GpuRenderer {
         Ok(GpuContext::new(allow_software)?.map(|ctx| GpuRenderer {
             ctx: Arc::new(ctx),
             pool: Arc::default(),
+            pair_cap: Arc::default(),
             junk: false,
         }))
     }
@@ -290,12 +298,30 @@ fn assemble(key: &FrameKey, settings: &RenderSettings, words: &[u32]) -> RenderO
     let s_at = t_at + w * h;
     let o_at = s_at + 4 * n;
     let mut out = RenderOutput::blank(w, h, nf, RenderAux::culled(n));
-    let mut ch = vec![0.0f32; nc];
-    for p in 0..w * h {
-        for (c, v) in ch.iter_mut().enumerate() {
-            *v = f(p * nc + c);
-        }
-        out.set_pixel(p, &ch, f(t_at + p), settings.background);
+    let bg = settings.background;
+    // by rows in parallel: a 1080p frame has 2M pixels
+    out.color
+        .par_chunks_mut(3 * w)
+        .zip(out.depth.par_chunks_mut(w))
+        .zip(out.alpha.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, ((color, depth), alpha))| {
+            for x in 0..w {
+                let p = y * w + x;
+                let t = f(t_at + p);
+                for k in 0..3 {
+                    color[3 * x + k] = f(p * nc + k) + t * bg[k];
+                }
+                depth[x] = f(p * nc + 3);
+                alpha[x] = 1.0 - t;
+            }
+        });
+    if nf > 0 {
+        out.features.par_chunks_mut(nf).enumerate().for_each(|(p, v)| {
+            for (c, v) in v.iter_mut().enumerate() {
+                *v = f(p * nc + 4 + c);
+            }
+        });
     }
     let a = &mut out.aux;
     for g in 0..n {
@@ -326,7 +352,7 @@ impl DifferentiableRenderer for GpuRenderer {
         check_inputs(cam, inputs, settings)?;
         let _span = tracing::debug_span!("render.gpu.forward", n = inputs.means.len()).entered();
         let n = inputs.means.len();
-        let mut cap = (4 * n).max(1 << 14);
+        let mut cap = (4 * n).max(1 << 14).max(self.pair_cap.load(Ordering::Relaxed));
         loop {
             let key = Self::key(cam, inputs, cap);
             let mut frame = self.pool.take(&self.ctx, key);
@@ -337,6 +363,7 @@ impl DifferentiableRenderer for GpuRenderer {
             let m = *words.last().expect("pair count") as usize;
             if m > frame.key.pair_cap {
                 cap = m + m / 4;
+                self.pair_cap.fetch_max(cap, Ordering::Relaxed);
                 drop(frame);
                 continue;
             }
