@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use super::motion::MotionForm;
 use super::poses::{PoseGrads, Poses};
 use super::sign;
-use crate::math::lanes::{F4, LANES};
+use crate::math::lanes::{F2, LANES};
 use crate::math::quat64::{self as q4, Q, V3};
 
 /// Gaussians per chunk of the sweep (a chunk's state is about 140 kB).
@@ -98,26 +98,26 @@ pub fn smoothness(
 /// A chunk's part of one frame's position and rotation gradient rows.
 type RowPart<'a> = (&'a mut [[f32; 3]], &'a mut [[f32; 4]]);
 
-/// Four Gaussians (the lanes) at one frame of a [`sweep`]: their poses in f64 and the
+/// [`LANES`] Gaussians at one frame of a [`sweep`]: their poses in f64 and the
 /// gradients so far.
 #[derive(Debug, Clone, Copy, Default)]
 struct Slot {
-    p: [F4; 3],
+    p: [F2; 3],
     /// Raw rotation, its unit quaternion and 1/norm (0 for a zero q).
-    q: [F4; 4],
-    u: [F4; 4],
-    qn: F4,
+    q: [F2; 4],
+    u: [F2; 4],
+    qn: F2,
     /// d/dp, d/d(raw q) and d/d(unit q).
-    gp: [F4; 3],
-    gq: [F4; 4],
-    gu: [F4; 4],
+    gp: [F2; 3],
+    gq: [F2; 4],
+    gu: [F2; 4],
 }
 
 /// The sums of [`smoothness`] over `m` Gaussians and `frames` frames (unnormalised
 /// `[velocity, acceleration]`), frames in order: `load(t, k)` gives Gaussian k's position
 /// and raw rotation at frame t, and `emit(t, k, g_p, g_q)` receives its gradient there
 /// (`k_v, k_a` = scale · norm of each term), once per (t, k) when frame t is complete.
-/// Gaussians run four at a time in the lanes of [`F4`] (the last block padded with
+/// Gaussians run [`LANES`] at a time in the lanes of [`F2`] (the last block padded with
 /// identity poses that are never emitted), each lane with the arithmetic of one Gaussian;
 /// the sums add the Gaussians' terms in order.
 fn sweep(
@@ -134,8 +134,8 @@ fn sweep(
     }
     let nb = m.div_ceil(LANES);
     let lanes = |b: usize| (0..LANES).filter(move |l| b * LANES + l < m);
-    let (kv, ka) = (F4::splat(kv), F4::splat(ka));
-    let (zero, one, two) = (F4::splat(0.0), F4::splat(1.0), F4::splat(2.0));
+    let (kv, ka) = (F2::splat(kv), F2::splat(ka));
+    let (zero, one, two) = (F2::splat(0.0), F2::splat(1.0), F2::splat(2.0));
     // Three frames of state (ring by t mod 3), and per block the relative rotation r_{t−1}
     // with its gradient so far (paper form).
     let mut st = vec![Slot::default(); 3 * nb];
@@ -173,8 +173,8 @@ fn sweep(
             let len = q4::dot4(q, q).sqrt();
             let pos = len.gt0();
             let inv = one / len;
-            let u = [0, 1, 2, 3].map(|c| F4::select(pos, q[c] * inv, [one, zero, zero, zero][c]));
-            let qn = F4::select(pos, inv, zero);
+            let u = [0, 1, 2, 3].map(|c| F2::select(pos, q[c] * inv, [one, zero, zero, zero][c]));
+            let qn = F2::select(pos, inv, zero);
             st[s0 + b] = Slot { p, q, u, qn, ..Slot::default() };
         }
         if t == 0 {
@@ -218,7 +218,7 @@ fn sweep(
                     g_prev[b] = g_t;
                 }
                 MotionForm::Release => {
-                    let (three, four) = (F4::splat(3.0), F4::splat(4.0));
+                    let (three, four) = (F2::splat(3.0), F2::splat(4.0));
                     let d = sub(x0.p, x1.p);
                     let dq = [0, 1, 2, 3].map(|c| x0.q[c] - x1.q[c]);
                     *v1 = sq(d) / three;
@@ -286,32 +286,32 @@ fn three(st: &mut [Slot], c: usize, b: usize, a: usize) -> [&mut Slot; 3] {
 /// The relative rotation's deviation from the identity, `std(r) − 1`, and the sign applied
 /// (per lane).
 #[inline]
-fn deviation(r: [F4; 4]) -> ([F4; 4], F4) {
+fn deviation(r: [F2; 4]) -> ([F2; 4], F2) {
     let neg = r[0].lt0();
-    let r = r.map(|x| F4::select(neg, -x, x));
-    ([r[0] - F4::splat(1.0), r[1], r[2], r[3]], F4::select(neg, F4::splat(-1.0), F4::splat(1.0)))
+    let r = r.map(|x| F2::select(neg, -x, x));
+    ([r[0] - F2::splat(1.0), r[1], r[2], r[3]], F2::select(neg, F2::splat(-1.0), F2::splat(1.0)))
 }
 
 /// [`sign`] per lane.
 #[inline]
-fn sign4(x: F4) -> F4 {
+fn sign4(x: F2) -> F2 {
     x.map(sign)
 }
 
 #[inline]
-fn sub(a: [F4; 3], b: [F4; 3]) -> [F4; 3] {
+fn sub(a: [F2; 3], b: [F2; 3]) -> [F2; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 /// Σ |x_c|, per lane.
 #[inline]
-fn l1<const D: usize>(x: [F4; D]) -> F4 {
-    x.into_iter().map(F4::abs).reduce(|s, v| s + v).expect("D > 0")
+fn l1<const D: usize>(x: [F2; D]) -> F2 {
+    x.into_iter().map(F2::abs).reduce(|s, v| s + v).expect("D > 0")
 }
 
 /// Σ x_c², per lane.
 #[inline]
-fn sq<const D: usize>(x: [F4; D]) -> F4 {
+fn sq<const D: usize>(x: [F2; D]) -> F2 {
     x.into_iter().map(|v| v * v).reduce(|s, v| s + v).expect("D > 0")
 }
 
@@ -324,9 +324,9 @@ fn add<T: Copy + std::ops::Add<Output = T>, const D: usize>(a: &mut [T; D], b: [
 
 /// `a += b` in the lanes where `c`.
 #[inline]
-fn add_where<const D: usize>(c: [bool; LANES], a: &mut [F4; D], b: [F4; D]) {
+fn add_where<const D: usize>(c: [bool; LANES], a: &mut [F2; D], b: [F2; D]) {
     for k in 0..D {
-        a[k] = F4::select(c, a[k] + b[k], a[k]);
+        a[k] = F2::select(c, a[k] + b[k], a[k]);
     }
 }
 
