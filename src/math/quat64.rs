@@ -16,7 +16,7 @@ pub type V3 = [f64; 3];
 pub type M3 = [[f64; 3]; 3];
 
 /// The arithmetic of the generic quaternion functions: `f64`, or lanes of it
-/// ([`super::lanes::F2`]).
+/// ([`super::lanes::Lanes`]).
 pub trait Real:
     Copy
     + std::ops::Add<Output = Self>

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use super::motion::MotionForm;
 use super::poses::{PoseGrads, Poses};
 use super::sign;
-use crate::math::lanes::{F2, LANES};
+use crate::math::lanes::{Lanes, Mask};
 use crate::math::quat64::{self as q4, Q, V3};
 
 /// Gaussians per chunk of the sweep (a chunk's state is about 140 kB).
@@ -98,29 +98,51 @@ pub fn smoothness(
 /// A chunk's part of one frame's position and rotation gradient rows.
 type RowPart<'a> = (&'a mut [[f32; 3]], &'a mut [[f32; 4]]);
 
-/// [`LANES`] Gaussians at one frame of a [`sweep`]: their poses in f64 and the
-/// gradients so far.
-#[derive(Debug, Clone, Copy, Default)]
-struct Slot {
-    p: [F2; 3],
+/// `L` Gaussians at one frame of a [`sweep`]: their poses in f64 and the gradients so far.
+#[derive(Debug, Clone, Copy)]
+struct Slot<const L: usize> {
+    p: [Lanes<L>; 3],
     /// Raw rotation, its unit quaternion and 1/norm (0 for a zero q).
-    q: [F2; 4],
-    u: [F2; 4],
-    qn: F2,
+    q: [Lanes<L>; 4],
+    u: [Lanes<L>; 4],
+    qn: Lanes<L>,
     /// d/dp, d/d(raw q) and d/d(unit q).
-    gp: [F2; 3],
-    gq: [F2; 4],
-    gu: [F2; 4],
+    gp: [Lanes<L>; 3],
+    gq: [Lanes<L>; 4],
+    gu: [Lanes<L>; 4],
+}
+
+impl<const L: usize> Default for Slot<L> {
+    fn default() -> Self {
+        let z = Lanes::default();
+        Slot { p: [z; 3], q: [z; 4], u: [z; 4], qn: z, gp: [z; 3], gq: [z; 4], gu: [z; 4] }
+    }
 }
 
 /// The sums of [`smoothness`] over `m` Gaussians and `frames` frames (unnormalised
 /// `[velocity, acceleration]`), frames in order: `load(t, k)` gives Gaussian k's position
 /// and raw rotation at frame t, and `emit(t, k, g_p, g_q)` receives its gradient there
 /// (`k_v, k_a` = scale · norm of each term), once per (t, k) when frame t is complete.
-/// Gaussians run [`LANES`] at a time in the lanes of [`F2`] (the last block padded with
-/// identity poses that are never emitted), each lane with the arithmetic of one Gaussian;
-/// the sums add the Gaussians' terms in order.
+/// The paper form runs two Gaussians at a time in the lanes of [`Lanes`]; the release
+/// form, lighter and bound by its loads, one (measured faster so).
 fn sweep(
+    frames: usize,
+    m: usize,
+    form: MotionForm,
+    k: (f64, f64),
+    load: impl Fn(usize, usize) -> (V3, Q),
+    emit: impl FnMut(usize, usize, V3, Q),
+) -> [f64; 2] {
+    match form {
+        MotionForm::Paper => sweep_lanes::<2>(frames, m, form, k, load, emit),
+        MotionForm::Release => sweep_lanes::<1>(frames, m, form, k, load, emit),
+    }
+}
+
+/// [`sweep`] with `L` Gaussians per block (the last block padded with identity poses that
+/// are never emitted), each lane with the arithmetic of one Gaussian; the sums add the
+/// Gaussians' terms in order.
+fn sweep_lanes<const L: usize>(
     frames: usize,
     m: usize,
     form: MotionForm,
@@ -132,23 +154,23 @@ fn sweep(
     if frames < 2 || m == 0 {
         return [v, a];
     }
-    let nb = m.div_ceil(LANES);
-    let lanes = |b: usize| (0..LANES).filter(move |l| b * LANES + l < m);
-    let (kv, ka) = (F2::splat(kv), F2::splat(ka));
-    let (zero, one, two) = (F2::splat(0.0), F2::splat(1.0), F2::splat(2.0));
+    let nb = m.div_ceil(L);
+    let lanes = |b: usize| (0..L).filter(move |l| b * L + l < m);
+    let (kv, ka) = (Lanes::<L>::splat(kv), Lanes::<L>::splat(ka));
+    let (zero, one, two) = (Lanes::<L>::splat(0.0), Lanes::<L>::splat(1.0), Lanes::<L>::splat(2.0));
     // Three frames of state (ring by t mod 3), and per block the relative rotation r_{t−1}
     // with its gradient so far (paper form).
-    let mut st = vec![Slot::default(); 3 * nb];
+    let mut st = vec![Slot::<L>::default(); 3 * nb];
     let mut r_prev = vec![[zero; 4]; nb];
     let mut g_prev = vec![[zero; 4]; nb];
-    let mut flush = |st: &[Slot], t: usize| {
+    let mut flush = |st: &[Slot<L>], t: usize| {
         for b in 0..nb {
             let s = &st[(t % 3) * nb + b];
             // normalize's VJP (g − u⟨u, g⟩)/‖q‖, by the reciprocal norm kept in `qn`
             let d = q4::dot4(s.u, s.gu);
             let gq = [0, 1, 2, 3].map(|c| s.gq[c] + (s.gu[c] - s.u[c] * d) * s.qn);
             for l in lanes(b) {
-                emit(t, b * LANES + l, s.gp.map(|x| x.0[l]), gq.map(|x| x.0[l]));
+                emit(t, b * L + l, s.gp.map(|x| x.0[l]), gq.map(|x| x.0[l]));
             }
         }
     };
@@ -161,7 +183,7 @@ fn sweep(
             let (mut p, mut q) = ([zero; 3], [zero, zero, zero, zero]);
             q[0] = one;
             for l in lanes(b) {
-                let (pl, ql) = load(t, b * LANES + l);
+                let (pl, ql) = load(t, b * L + l);
                 for c in 0..3 {
                     p[c].0[l] = pl[c];
                 }
@@ -173,39 +195,41 @@ fn sweep(
             let len = q4::dot4(q, q).sqrt();
             let pos = len.gt0();
             let inv = one / len;
-            let u = [0, 1, 2, 3].map(|c| F2::select(pos, q[c] * inv, [one, zero, zero, zero][c]));
-            let qn = F2::select(pos, inv, zero);
+            let u = [0, 1, 2, 3]
+                .map(|c| Lanes::<L>::select(pos, q[c] * inv, [one, zero, zero, zero][c]));
+            let qn = Lanes::<L>::select(pos, inv, zero);
             st[s0 + b] = Slot { p, q, u, qn, ..Slot::default() };
         }
         if t == 0 {
             continue;
         }
         let (s1, s2) = (((t - 1) % 3) * nb, ((t + 1) % 3) * nb);
-        for b in 0..nb {
-            // frames t−2 (a stale slot when t = 1, unused then), t−1, t of block b
-            let [x2, x1, x0] = three(&mut st, s2 + b, s1 + b, s0 + b);
-            let [v1, v2, a1, a2] = &mut sums[b];
-            match form {
-                MotionForm::Paper => {
+        // One loop per form (each keeps its own registers). Frames t−2 (a stale slot when
+        // t = 1, unused then), t−1, t of block b.
+        match form {
+            MotionForm::Paper => {
+                for b in 0..nb {
+                    let [x2, x1, x0] = three(&mut st, s2 + b, s1 + b, s0 + b);
+                    let [v1, v2, a1, a2] = &mut sums[b];
                     let d = sub(x1.p, x0.p);
                     *v1 = l1(d);
-                    let gd = d.map(|x| kv * sign4(x));
+                    let gd = d.map(|x| kv * sign_l(x));
                     add(&mut x1.gp, gd);
                     add(&mut x0.gp, gd.map(|x| -x));
                     let r_t = q4::mul(x1.u, q4::conj(x0.u));
                     let (dev, s) = deviation(r_t);
                     *v2 = l1(dev);
-                    let mut g_t = dev.map(|x| kv * s * sign4(x));
+                    let mut g_t = dev.map(|x| kv * s * sign_l(x));
                     if t >= 2 {
                         let d = [0, 1, 2].map(|c| x2.p[c] - two * x1.p[c] + x0.p[c]);
                         *a1 = l1(d);
-                        let gd = d.map(|x| ka * sign4(x));
+                        let gd = d.map(|x| ka * sign_l(x));
                         add(&mut x2.gp, gd);
                         add(&mut x1.gp, gd.map(|x| -two * x));
                         add(&mut x0.gp, gd);
                         let (dev, s) = deviation(q4::mul(r_prev[b], q4::conj(r_t)));
                         *a2 = l1(dev);
-                        let gr = dev.map(|x| ka * s * sign4(x));
+                        let gr = dev.map(|x| ka * s * sign_l(x));
                         let (g_r1, g_r2c) = q4::mul_vjp(r_prev[b], q4::conj(r_t), gr);
                         add(&mut g_prev[b], g_r1);
                         add(&mut g_t, q4::conj(g_r2c));
@@ -217,8 +241,12 @@ fn sweep(
                     r_prev[b] = r_t;
                     g_prev[b] = g_t;
                 }
-                MotionForm::Release => {
-                    let (three, four) = (F2::splat(3.0), F2::splat(4.0));
+            }
+            MotionForm::Release => {
+                for b in 0..nb {
+                    let [x2, x1, x0] = three(&mut st, s2 + b, s1 + b, s0 + b);
+                    let [v1, v2, a1, a2] = &mut sums[b];
+                    let (three, four) = (Lanes::<L>::splat(3.0), Lanes::<L>::splat(4.0));
                     let d = sub(x0.p, x1.p);
                     let dq = [0, 1, 2, 3].map(|c| x0.q[c] - x1.q[c]);
                     *v1 = sq(d) / three;
@@ -279,39 +307,42 @@ fn sweep(
 
 /// Mutable references to the distinct slots `c` (t−2), `b` (t−1) and `a` (t).
 #[inline]
-fn three(st: &mut [Slot], c: usize, b: usize, a: usize) -> [&mut Slot; 3] {
+fn three<const L: usize>(st: &mut [Slot<L>], c: usize, b: usize, a: usize) -> [&mut Slot<L>; 3] {
     st.get_disjoint_mut([c, b, a]).expect("distinct slots")
 }
 
 /// The relative rotation's deviation from the identity, `std(r) − 1`, and the sign applied
 /// (per lane).
 #[inline]
-fn deviation(r: [F2; 4]) -> ([F2; 4], F2) {
+fn deviation<const L: usize>(r: [Lanes<L>; 4]) -> ([Lanes<L>; 4], Lanes<L>) {
     let neg = r[0].lt0();
-    let r = r.map(|x| F2::select(neg, -x, x));
-    ([r[0] - F2::splat(1.0), r[1], r[2], r[3]], F2::select(neg, F2::splat(-1.0), F2::splat(1.0)))
+    let r = r.map(|x| Lanes::<L>::select(neg, -x, x));
+    (
+        [r[0] - Lanes::<L>::splat(1.0), r[1], r[2], r[3]],
+        Lanes::<L>::select(neg, Lanes::<L>::splat(-1.0), Lanes::<L>::splat(1.0)),
+    )
 }
 
 /// [`sign`] per lane.
 #[inline]
-fn sign4(x: F2) -> F2 {
+fn sign_l<const L: usize>(x: Lanes<L>) -> Lanes<L> {
     x.map(sign)
 }
 
 #[inline]
-fn sub(a: [F2; 3], b: [F2; 3]) -> [F2; 3] {
+fn sub<const L: usize>(a: [Lanes<L>; 3], b: [Lanes<L>; 3]) -> [Lanes<L>; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 /// Σ |x_c|, per lane.
 #[inline]
-fn l1<const D: usize>(x: [F2; D]) -> F2 {
-    x.into_iter().map(F2::abs).reduce(|s, v| s + v).expect("D > 0")
+fn l1<const L: usize, const D: usize>(x: [Lanes<L>; D]) -> Lanes<L> {
+    x.into_iter().map(Lanes::<L>::abs).reduce(|s, v| s + v).expect("D > 0")
 }
 
 /// Σ x_c², per lane.
 #[inline]
-fn sq<const D: usize>(x: [F2; D]) -> F2 {
+fn sq<const L: usize, const D: usize>(x: [Lanes<L>; D]) -> Lanes<L> {
     x.into_iter().map(|v| v * v).reduce(|s, v| s + v).expect("D > 0")
 }
 
@@ -322,11 +353,15 @@ fn add<T: Copy + std::ops::Add<Output = T>, const D: usize>(a: &mut [T; D], b: [
     }
 }
 
-/// `a += b` in the lanes where `c`.
+/// `a += b` in the lanes where `c` (all of them, nearly always).
 #[inline]
-fn add_where<const D: usize>(c: [bool; LANES], a: &mut [F2; D], b: [F2; D]) {
-    for k in 0..D {
-        a[k] = F2::select(c, a[k] + b[k], a[k]);
+fn add_where<const L: usize, const D: usize>(c: Mask<L>, a: &mut [Lanes<L>; D], b: [Lanes<L>; D]) {
+    if c.all() {
+        add(a, b);
+    } else {
+        for k in 0..D {
+            a[k] = Lanes::<L>::select(c, a[k] + b[k], a[k]);
+        }
     }
 }
 
