@@ -11,7 +11,8 @@
 //!
 //! Work layout: the terms couple only the frames of one Gaussian, so the (sorted) Gaussians
 //! are cut into fixed chunks, and each chunk sweeps the frames in order straight from the
-//! frame-major f32 poses, keeping three frames of f64 state per Gaussian. A chunk owns its
+//! frame-major f32 poses, keeping three frames of f64 state per Gaussian (the paper form
+//! two Gaussians at a time in SIMD lanes, [`crate::math::lanes`]). A chunk owns its
 //! Gaussians' gradient entries (a column range of every frame row), each of which receives
 //! one f32 addition once its frame is complete; chunk values are reduced in chunk order.
 //! Neither depends on the number of threads, and nothing of size T × N is copied.
