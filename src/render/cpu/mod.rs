@@ -222,12 +222,8 @@ fn assemble(
 ) -> RenderOutput {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let nc = 4 + nf;
-    let mut out = RenderOutput::blank(w, h, nf, aux);
-    for p in 0..w * h {
-        let ch = &fwd.channels[p * nc..(p + 1) * nc];
-        out.set_pixel(p, ch, saved.final_t[p], settings.background);
-    }
-    out
+    let ch = |p: usize, c: usize| fwd.channels[p * nc + c];
+    RenderOutput::compose((w, h, nf), aux, ch, |p| saved.final_t[p], settings.background)
 }
 
 super::render_is_forward!(CpuRenderer);

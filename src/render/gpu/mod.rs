@@ -35,8 +35,6 @@ pub use device::{AnyRenderer, AnySaved};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use rayon::prelude::*;
-
 use frame::{
     Frame, FrameKey, FramePool, PooledFrame, bind, dispatch, grid, read_words, sort_passes,
 };
@@ -297,32 +295,14 @@ fn assemble(key: &FrameKey, settings: &RenderSettings, words: &[u32]) -> RenderO
     let t_at = w * h * nc;
     let s_at = t_at + w * h;
     let o_at = s_at + 4 * n;
-    let mut out = RenderOutput::blank(w, h, nf, RenderAux::culled(n));
-    let bg = settings.background;
-    // by rows in parallel: a 1080p frame has 2M pixels
-    out.color
-        .par_chunks_mut(3 * w)
-        .zip(out.depth.par_chunks_mut(w))
-        .zip(out.alpha.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, ((color, depth), alpha))| {
-            for x in 0..w {
-                let p = y * w + x;
-                let t = f(t_at + p);
-                for k in 0..3 {
-                    color[3 * x + k] = f(p * nc + k) + t * bg[k];
-                }
-                depth[x] = f(p * nc + 3);
-                alpha[x] = 1.0 - t;
-            }
-        });
-    if nf > 0 {
-        out.features.par_chunks_mut(nf).enumerate().for_each(|(p, v)| {
-            for (c, v) in v.iter_mut().enumerate() {
-                *v = f(p * nc + 4 + c);
-            }
-        });
-    }
+    let ch = |p: usize, c: usize| f(p * nc + c);
+    let mut out = RenderOutput::compose(
+        (w, h, nf),
+        RenderAux::culled(n),
+        ch,
+        |p| f(t_at + p),
+        settings.background,
+    );
     let a = &mut out.aux;
     for g in 0..n {
         a.visible[g] = words[o_at + g + 1] > words[o_at + g];
