@@ -2,7 +2,9 @@
 //! release's variants (official-release.md §5.1, §5.3) as named settings.
 //!
 //! - Anchors Σ_t Σ_i ‖p_{i,t} − p°_{i,t}‖ for keys (and non-keys) in the metric of
-//!   [`AnchorMetric`] built from u_{i,t} and the training camera of frame t (Eq. 6).
+//!   [`AnchorMetric`] built from u_{i,t} and the training camera of frame t (Eq. 6); for
+//!   the non-keys' anchor and DQB terms, [`MetricFrame`] chooses between that and Eq. 11's
+//!   U_{w,i} (u and camera of the non-key's most reliable frame t̂_i).
 //! - DQB term Σ_{t ∈ batch} Σ_{u ∈ non-keys} ‖p_{u,t} − p^DQB_{u,t}‖ (Eq. 10-11): DQB of the
 //!   non-key's keys' motions from its most reliable frame t̂_u to t ([`crate::math::dqb`]),
 //!   with the blend weights of [`super::nonkey_weights`] (trainable per-key sharpness θ and
@@ -67,6 +69,20 @@ pub enum AnchorMetric {
     Euclidean,
 }
 
+/// Which frame's U weighs a non-key's anchor and DQB terms at frame t (Eq. 11).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum MetricFrame {
+    /// U_{w,t,i}, as L_key (Eq. 9): the frame's own u_{i,t} and camera, so both pulls fade
+    /// at the frames where the non-key is unreliable.
+    Each,
+    /// U_{w,i} as Eq. 11 writes it, read as U_{w,t̂_i,i}: the u and camera of the non-key's
+    /// most reliable frame t̂_i at every t, so both pulls keep that frame's strength.
+    MostReliable,
+}
+
 /// How the graph objective's sums over frames and Gaussians (or edges) are reduced.
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Deserialize, serde::Serialize,
@@ -84,6 +100,8 @@ pub enum Reduction {
 pub struct GraphSettings {
     /// Metric of the anchor and DQB position terms.
     pub anchor_metric: AnchorMetric,
+    /// Which frame's U weighs the non-keys' anchor and DQB terms.
+    pub nonkey_metric_frame: MetricFrame,
     /// r_x, r_y, r_z of Eq. 6.
     pub r_xyz: [f64; 3],
     /// Release confidence mask: u < 1/contrib_threshold.
@@ -131,6 +149,7 @@ impl GraphSettings {
         let paper = profile == crate::stages::params::Profile::Paper;
         GraphSettings {
             anchor_metric: if paper { AnchorMetric::PaperLiteral } else { AnchorMetric::Release },
+            nonkey_metric_frame: MetricFrame::Each,
             r_xyz: if paper { [1.0, 1.0, 0.01] } else { [1.0, 1.0, 0.1] },
             contrib_threshold: 2.0,
             reduction: if paper { Reduction::Sum } else { Reduction::Mean },
@@ -221,6 +240,10 @@ pub struct GraphObjective {
     /// The blend weights w' of the last evaluation (at construction: of p°) `[E_n]`.
     nk_w_eff: Vec<f64>,
     scratch: DqbScratch,
+    /// The frame whose U weighs pose i at every frame `[N]` (t̂ of a non-key under
+    /// [`MetricFrame::MostReliable`]), [`Self::OWN_FRAME`] for the frame's own; empty when
+    /// every pose uses its own.
+    metric_frame: Vec<u32>,
     /// p° `[T, N]`, u `[T, N]`, R_cw `[T]`.
     p0: Vec<[f32; 3]>,
     u: Vec<f32>,
@@ -333,6 +356,13 @@ impl GraphObjective {
             nk_order[u] = v as u32;
         }
         let n_edges = nk_key.len();
+        let mut metric_frame = Vec::new();
+        if s.nonkey_metric_frame == MetricFrame::MostReliable {
+            metric_frame = vec![Self::OWN_FRAME; n];
+            for (u, &i) in inp.nonkeys.iter().enumerate() {
+                metric_frame[i as usize] = inp.t_hat[u];
+            }
+        }
         let mut obj = GraphObjective {
             frames: t,
             n,
@@ -366,6 +396,7 @@ impl GraphObjective {
             g_offsets: vec![0.0; if s.nonkey_pose_offsets { 7 * nu } else { 0 }],
             nk_w_eff: vec![0.0; n_edges],
             scratch: DqbScratch::default(),
+            metric_frame,
             p0: inp.initial.position.clone(),
             u: inp.u.to_vec(),
             rot: inp
@@ -585,25 +616,37 @@ impl GraphObjective {
         }
     }
 
-    /// The metric of frame t, Gaussian i: per-axis factors in the camera frame (already
-    /// multiplied by the per-(t, i) weight), or `None` when the term is masked out.
-    fn metric(&self, t: usize, i: usize) -> Option<V3> {
-        let r = self.s.r_xyz;
-        match self.s.anchor_metric {
-            AnchorMetric::Euclidean => Some([1.0; 3]),
-            AnchorMetric::PaperLiteral => {
-                let u = self.u[t * self.n + i] as f64;
-                Some([1.0 / (r[0] * u), 1.0 / (r[1] * u), 1.0 / (r[2] * u)])
-            }
-            AnchorMetric::Release => {
-                ((self.u[t * self.n + i] as f64) < 1.0 / self.s.contrib_threshold).then_some(r)
-            }
+    /// [`Self::metric_frame`]'s entry of a pose that uses each frame's own U.
+    const OWN_FRAME: u32 = u32::MAX;
+
+    /// The frame whose u and camera weigh pose i's terms at frame t.
+    #[inline]
+    fn metric_frame(&self, t: usize, i: usize) -> usize {
+        match self.metric_frame.get(i) {
+            Some(&f) if f != Self::OWN_FRAME => f as usize,
+            _ => t,
         }
     }
 
-    /// √(Σ_c k_c (R_t x)_c² + 1e-8) and its gradient with respect to x.
-    fn distance(&self, t: usize, k: V3, x: V3) -> (f64, V3) {
-        let rm = &self.rot[t];
+    /// The metric of frame t, Gaussian i: per-axis factors in the camera frame of
+    /// [`Self::metric_frame`] (already multiplied by the per-(t, i) weight), or `None` when
+    /// the term is masked out.
+    fn metric(&self, t: usize, i: usize) -> Option<V3> {
+        let r = self.s.r_xyz;
+        let u = self.u[self.metric_frame(t, i) * self.n + i] as f64;
+        match self.s.anchor_metric {
+            AnchorMetric::Euclidean => Some([1.0; 3]),
+            AnchorMetric::PaperLiteral => {
+                Some([1.0 / (r[0] * u), 1.0 / (r[1] * u), 1.0 / (r[2] * u)])
+            }
+            AnchorMetric::Release => (u < 1.0 / self.s.contrib_threshold).then_some(r),
+        }
+    }
+
+    /// √(Σ_c k_c (R_f x)_c² + 1e-8) and its gradient with respect to x, in the camera of
+    /// frame f.
+    fn distance(&self, f: usize, k: V3, x: V3) -> (f64, V3) {
+        let rm = &self.rot[f];
         let y = q4::mat_vec(rm, x);
         let d = (k[0] * y[0] * y[0] + k[1] * y[1] * y[1] + k[2] * y[2] * y[2] + 1e-8).sqrt();
         let gy = [0, 1, 2].map(|c| k[c] * y[c] / d);
@@ -636,7 +679,7 @@ impl GraphObjective {
     /// the term is masked out.
     #[inline]
     fn anchor_weight(&self, t: usize, i: usize) -> Option<f64> {
-        let u = self.u[t * self.n + i] as f64;
+        let u = self.u[self.metric_frame(t, i) * self.n + i] as f64;
         match self.s.anchor_metric {
             AnchorMetric::Euclidean => Some(1.0),
             AnchorMetric::PaperLiteral => Some(1.0 / u),
@@ -682,13 +725,13 @@ impl GraphObjective {
             .par_chunks_mut(n)
             .enumerate()
             .map(|(t, row)| {
-                let a = &mats[t];
                 let mut sum = [0.0; 2];
                 for i in 0..n {
                     let r = match role[i] {
                         0 => continue,
                         r => r as usize - 1,
                     };
+                    let a = &mats[self.metric_frame(t, i)];
                     let Some(w) = self.anchor_weight(t, i) else { continue };
                     let o = t * n + i;
                     let x = [0, 1, 2].map(|c| (poses.position[o][c] - self.p0[o][c]) as f64);
@@ -1040,6 +1083,13 @@ mod tests {
                 },
             ),
             (
+                "paper-with-most-reliable-metric-frame",
+                GraphSettings {
+                    nonkey_metric_frame: MetricFrame::MostReliable,
+                    ..GraphSettings::defaults(Profile::Paper)
+                },
+            ),
+            (
                 "paper-with-current-weights-and-offsets",
                 GraphSettings {
                     nonkey_weights: NonkeyWeights::Current,
@@ -1122,6 +1172,41 @@ mod tests {
             fails.len(),
             fails[..fails.len().min(30)].join("\n")
         );
+    }
+
+    #[test]
+    fn the_most_reliable_metric_frame_weighs_every_frame_as_the_nonkeys_t_hat() {
+        // non-key pose 1 has t̂ = 3; key pose 0 keeps its own frames
+        let d = [0.03f32, -0.02, 0.05];
+        let grads = |frame: MetricFrame| {
+            let s = GraphSettings {
+                nonkey_metric_frame: frame,
+                ..GraphSettings::defaults(Profile::Paper)
+            };
+            let (obj, _) = case(s);
+            let (n, mut poses) = (obj.n, obj_p0(&obj));
+            for (t, i) in [(3, 1), (9, 1), (3, 0), (9, 0)] {
+                (0..3).for_each(|c| poses.position[t * n + i][c] += d[c]);
+            }
+            let mut g = PoseGrads::zeros(poses.frames, n);
+            obj.anchors(&poses, [1.0, 1.0], &mut g);
+            [(3, 1), (9, 1), (3, 0), (9, 0)].map(|(t, i)| g.position[t * n + i])
+        };
+        let close = |a: [f32; 3], b: [f32; 3]| {
+            (0..3).all(|c| (a[c] - b[c]).abs() <= 1e-4 * a[c].abs().max(1.0))
+        };
+        let [own3, own9, key3, key9] = grads(MetricFrame::Each);
+        let [fix3, fix9, fkey3, fkey9] = grads(MetricFrame::MostReliable);
+        assert!(!close(own3, own9), "each frame's own U: {own3:?} vs {own9:?}");
+        assert!(close(fix3, fix9), "t̂'s U at frame 9: {fix3:?} vs {fix9:?}");
+        assert_eq!((own3, key3, key9), (fix3, fkey3, fkey9), "t̂ itself and the keys are unchanged");
+    }
+
+    /// p° of the objective as poses (rotations identity: the anchors read positions only).
+    fn obj_p0(obj: &GraphObjective) -> Poses {
+        let mut p = Poses::identity(obj.frames, obj.n);
+        p.position.clone_from(&obj.p0);
+        p
     }
 
     fn get(p: &Poses, k: usize, c: usize) -> f32 {

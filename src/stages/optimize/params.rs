@@ -9,7 +9,7 @@
 
 use std::path::PathBuf;
 
-use super::graph_loss::{AnchorMetric, GraphInit, GraphSettings, Reduction};
+use super::graph_loss::{AnchorMetric, GraphInit, GraphSettings, MetricFrame, Reduction};
 use super::image_loss::ImageLossWeights;
 use super::nonkey_weights::NonkeyWeights;
 use crate::stages::params::{Profile, check};
@@ -116,6 +116,11 @@ crate::stage_params! {
             /// 15-17); `--no-loss-weighting` makes it euclidean.
             anchor_metric: AnchorMetric => AnchorMetric [check::choice]
                 { paper "paper-literal", release "release", row "15" },
+            /// Which frame's U weighs a non-key's anchor and DQB terms at frame t: `each` (U_{w,t,i},
+            /// as L_key's Eq. 9) or `most-reliable` (Eq. 11's U_{w,i}, read as the u and camera of
+            /// the non-key's t̂_i at every t; README "Deliberate readings").
+            nonkey_metric_frame: MetricFrame => MetricFrame [check::choice]
+                { paper "each", release "each" },
             /// Reduction of the graph objective's sums over frames and Gaussians: the anchor and
             /// DQB terms and App. A.2's key edge, velocity and acceleration terms (sum: Σ_t Σ_i as
             /// Eqs. 9 and 11 are written; mean: as the release and the base models average).
@@ -286,6 +291,7 @@ impl OptimizeSettings {
                 } else {
                     v.anchor_metric
                 },
+                nonkey_metric_frame: v.nonkey_metric_frame,
                 r_xyz: [g.r_xyz[0], g.r_xyz[1], v.r_z],
                 reduction: v.graph_reduction,
                 key_anchor: v.key_anchor_weight,

@@ -87,6 +87,7 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         key_anchor_weight: None,
         nonkey_anchor_weight: None,
         anchor_metric: None,
+        nonkey_metric_frame: None,
         graph_reduction: None,
         nonkey_weights: None,
         nonkey_dweight_l2: None,

@@ -392,7 +392,7 @@ impl GraphObjective {
             let cot = &mut uc[lu];
             cot.pose = [0.0; 7];
             if let Some(k) = k {
-                let (d, g) = self.distance(t, k, x);
+                let (d, g) = self.distance(self.metric_frame(t, node), k, x);
                 sums[0] += d;
                 g_p = g.map(|v| -wp * v);
                 for c in 0..3 {
