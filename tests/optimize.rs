@@ -289,14 +289,15 @@ fn far_view_psnr(dir: &Dir, model: &str) -> f64 {
 /// run's name, its errors at the drifted pairs and its far-view PSNR. Runs: the prior,
 /// vanilla, usplat4d paper, usplat4d paper with the release's anchor metric, usplat4d paper
 /// with the non-keys' metric of their most reliable frame, usplat4d release (with its graph
-/// initialisation) and usplat4d release without it.
+/// initialisation) and usplat4d release without it, each for `steps` steps.
 fn recovery_runs(
     dir: &Dir,
     truth: &[Vec<[f32; 3]>],
     ids: &[u32],
     pairs: &[(usize, usize)],
+    steps: &str,
 ) -> Vec<(String, Vec<Option<f64>>, f64)> {
-    let common = ["--model", "drifted", "--scene", "S", "--steps", "30", "--lr-position", "0.01"];
+    let common = ["--model", "drifted", "--scene", "S", "--steps", steps, "--lr-position", "0.01"];
     dir.ok(&[&["optimize", "--recipe", "vanilla", "--out", "V"][..], &common[..]].concat());
     let mut names = vec!["drifted".to_string(), "V".to_string()];
     for (profile, out, extra) in [
@@ -362,10 +363,17 @@ fn recovery_runs(
 /// at 24 frames, 128², 6,000 Gaussians; a scratch measurement, see README's "Graph
 /// initialisation") leaves them 0.11 from the truth at the unseen pairs (0.04 over all
 /// dynamic pairs).
+///
+/// `USPLAT4D_RECOVERY_STEPS=N` runs N steps instead of 30 (same assertions). At 150 steps
+/// vanilla reaches 0.093 and 0.092 but its far views fall to 19.76 and 19.55 dB, below the
+/// prior; usplat4d paper reaches 0.135 and 0.084 with 23.87 and 23.86 dB: along the rays it
+/// is now closer than vanilla too, on the random prior still not.
 #[test]
 #[ignore = "issue 11's recovery criterion does not hold on this prior: the unseen parts have \
             no key nodes (see the doc comment)"]
 fn usplat4d_brings_drifted_points_closer_than_vanilla() {
+    let steps: u32 =
+        std::env::var("USPLAT4D_RECOVERY_STEPS").ok().and_then(|v| v.parse().ok()).unwrap_or(30);
     let mut assertions = None;
     for along_ray in [false, true] {
         let dir = Dir::new();
@@ -390,13 +398,17 @@ fn usplat4d_brings_drifted_points_closer_than_vanilla() {
             if along_ray { DriftDirection::AwayFrom(&centres) } else { DriftDirection::Random };
         let drift = drifted_prior(&dir, &oracle, |i, t| seen[t][i] == 0, (0.1, towards), 0);
         let pairs = drift.pairs();
-        let runs = recovery_runs(&dir, &truth, &oracle.gaussians.id, &pairs);
+        let runs = recovery_runs(&dir, &truth, &oracle.gaussians.id, &pairs, &steps.to_string());
         let errors: Vec<_> = runs.iter().map(|r| r.1.clone()).collect();
         // Prior, vanilla and the paper profile on every drifted pair; all runs on the pairs the release
         // keeps (it culls most non-keys).
         let ((n3, m3), (n5, m5)) = (common_means(&errors[..5]), common_means(&errors));
         let kind = if along_ray { "along the viewing rays" } else { "random directions" };
-        println!("recovery, drift {:.3} in {kind}, {} drifted pairs:", drift.offset, pairs.len());
+        println!(
+            "recovery, drift {:.3} in {kind}, {} drifted pairs, {steps} steps:",
+            drift.offset,
+            pairs.len()
+        );
         for (k, (m, _, psnr)) in runs.iter().enumerate() {
             let first = m3.get(k).map_or("-".to_string(), |e| format!("{e:.4}"));
             println!(
