@@ -628,12 +628,12 @@ impl GraphObjective {
         }
     }
 
-    /// The metric of frame t, Gaussian i: per-axis factors in the camera frame of
-    /// [`Self::metric_frame`] (already multiplied by the per-(t, i) weight), or `None` when
-    /// the term is masked out.
-    fn metric(&self, t: usize, i: usize) -> Option<V3> {
+    /// The metric of Gaussian i weighed by frame f (its [`Self::metric_frame`]): per-axis
+    /// factors in the camera frame of f (already multiplied by the weight of u_{i,f}), or
+    /// `None` when the term is masked out.
+    fn metric(&self, f: usize, i: usize) -> Option<V3> {
         let r = self.s.r_xyz;
-        let u = self.u[self.metric_frame(t, i) * self.n + i] as f64;
+        let u = self.u[f * self.n + i] as f64;
         match self.s.anchor_metric {
             AnchorMetric::Euclidean => Some([1.0; 3]),
             AnchorMetric::PaperLiteral => {
@@ -675,11 +675,11 @@ impl GraphObjective {
         self.rot.iter().map(a).collect()
     }
 
-    /// w_{t,i} of [`Self::anchor_matrices`] (1/u, or the release's mask as 1), `None` when
-    /// the term is masked out.
+    /// The weight of [`Self::anchor_matrices`] from u_{i,f} at Gaussian i's metric frame f
+    /// (1/u, or the release's mask as 1), `None` when the term is masked out.
     #[inline]
-    fn anchor_weight(&self, t: usize, i: usize) -> Option<f64> {
-        let u = self.u[self.metric_frame(t, i) * self.n + i] as f64;
+    fn anchor_weight(&self, f: usize, i: usize) -> Option<f64> {
+        let u = self.u[f * self.n + i] as f64;
         match self.s.anchor_metric {
             AnchorMetric::Euclidean => Some(1.0),
             AnchorMetric::PaperLiteral => Some(1.0 / u),
@@ -710,7 +710,10 @@ impl GraphObjective {
                         .into_par_iter()
                         .map(|t| {
                             (0..n)
-                                .filter(|&i| role[i] == r && self.anchor_weight(t, i).is_some())
+                                .filter(|&i| {
+                                    role[i] == r
+                                        && self.anchor_weight(self.metric_frame(t, i), i).is_some()
+                                })
                                 .count()
                         })
                         .sum()
@@ -731,8 +734,9 @@ impl GraphObjective {
                         0 => continue,
                         r => r as usize - 1,
                     };
-                    let a = &mats[self.metric_frame(t, i)];
-                    let Some(w) = self.anchor_weight(t, i) else { continue };
+                    let f = self.metric_frame(t, i);
+                    let Some(w) = self.anchor_weight(f, i) else { continue };
+                    let a = &mats[f];
                     let o = t * n + i;
                     let x = [0, 1, 2].map(|c| (poses.position[o][c] - self.p0[o][c]) as f64);
                     let y = q4::mat_vec(a, x);

@@ -384,15 +384,16 @@ impl GraphObjective {
             }
             let o = t * self.n + node;
             let x = [0, 1, 2].map(|c| poses.position[o][c] as f64 - out_p[c]);
+            let f = self.metric_frame(t, node);
             let k = match s.anchor_metric {
                 AnchorMetric::Release => Some([1.0; 3]),
-                _ => self.metric(t, node),
+                _ => self.metric(f, node),
             };
             let (mut g_p, mut g_q) = ([0.0; 3], [0.0; 4]);
             let cot = &mut uc[lu];
             cot.pose = [0.0; 7];
             if let Some(k) = k {
-                let (d, g) = self.distance(self.metric_frame(t, node), k, x);
+                let (d, g) = self.distance(f, k, x);
                 sums[0] += d;
                 g_p = g.map(|v| -wp * v);
                 for c in 0..3 {
