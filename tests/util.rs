@@ -190,6 +190,9 @@ pub enum DriftDirection<'a> {
     /// Away from the camera centre of each frame (`[T]`), along the viewing ray: an occluded
     /// point stays occluded, as under a monocular depth error.
     AwayFrom(&'a [[f64; 3]]),
+    /// A given direction per Gaussian (`[N]`, unnormalised; `None`: not displaced), for a
+    /// caller that chooses them (the recovery test's directions that keep points hidden).
+    Given(&'a [Option<[f64; 3]>]),
 }
 
 /// The drifted prior of `oracle` in `dir/drifted`: a seeded half of the dynamic Gaussians
@@ -211,7 +214,13 @@ pub fn drifted_prior(
     let mut window = vec![vec![false; nt]; n];
     let mut drifted = vec![false; n];
     for i in (0..n).filter(|&i| oracle.gaussians.dynamic[i]) {
-        let (pick, dir3) = (rng.uniform() < 0.5, [rng.normal(), rng.normal(), rng.normal()]);
+        let (pick, mut dir3) = (rng.uniform() < 0.5, [rng.normal(), rng.normal(), rng.normal()]);
+        if let DriftDirection::Given(given) = towards {
+            match given[i] {
+                Some(g) => dir3 = g,
+                None => continue,
+            }
+        }
         let unseen: Vec<usize> = (0..nt).filter(|&t| unseen(i, t)).collect();
         if !pick || unseen.is_empty() {
             continue;
@@ -226,7 +235,7 @@ pub fn drifted_prior(
         }
         for (t, (s, _)) in states.iter_mut().zip(&window[i]).enumerate().filter(|(_, (_, w))| **w) {
             let d = match towards {
-                DriftDirection::Random => d,
+                DriftDirection::Random | DriftDirection::Given(_) => d,
                 DriftDirection::AwayFrom(c) => {
                     let r = [0, 1, 2].map(|k| s.position[i][k] as f64 - c[t][k]);
                     let len = r.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
