@@ -439,7 +439,9 @@ fn drift_seen(dir: &Dir, ids: &[u32], pairs: &[(usize, usize)]) -> (usize, usize
 /// usplat4d renders the far views better on every prior. On the random prior the drift is
 /// mostly in view: the training camera sees 131 of the 142 drifted pairs in the prior (the
 /// displaced point comes out from behind its occluder) and 90 of them pass Eq. 4's colour
-/// test (the fox is nearly one colour), so the uncertainty stage trusts them; for 24 of the 61
+/// test (the fox is nearly one colour: the textureless case of the paper's Appendix on
+/// challenging cases, where wrong priors pass for right), so the uncertainty stage trusts
+/// them; for 24 of the 61
 /// drifted Gaussians (69 pairs) it picks a drifted frame as t̂, where the point lies in front
 /// with some of the lowest u of the scene. There the U⁻¹-weighted anchor holds the drift and
 /// DQB, relative to t̂, carries it to the other frames: paper 0.157 against vanilla 0.101. On
