@@ -146,6 +146,13 @@ crate::stage_params! {
             /// relative rotation (λ_iso, λ_rigid, λ_rot) over each non-key's key edges E_i with
             /// the edges table's weights (scaled by λ_graph; the release's L_nonkey has none).
             nonkey_motion_weight: f64 => f64 [check::parsed] { paper "1", release "0", row "55" },
+            /// Multiplier of the non-keys' DQB terms (the position term, and the release's
+            /// rotation term) within λ_graph: an ablation, 0 leaves each non-key to its anchor
+            /// and edge terms.
+            dqb_weight: f64 => f64 [check::non_negative] { paper "1", release "1" },
+            /// Multiplier of the key edge terms of L^{motion,key} (isometry, rigidity, relative
+            /// rotation over key-key edges) within λ_graph: an ablation.
+            key_motion_weight: f64 => f64 [check::non_negative] { paper "1", release "1" },
             /// Depth ratio r_z of U.
             r_z: f64 => f64 [check::parsed] { paper "0.01", release "0.1", row "15" },
         }
@@ -296,9 +303,9 @@ impl OptimizeSettings {
                 reduction: v.graph_reduction,
                 key_anchor: v.key_anchor_weight,
                 nonkey_anchor: v.nonkey_anchor_weight,
-                dqb: lg * g.dqb,
-                dqb_rotation: lg * g.dqb_rotation,
-                key_motion: lg * g.key_motion,
+                dqb: lg * g.dqb * v.dqb_weight,
+                dqb_rotation: lg * g.dqb_rotation * v.dqb_weight,
+                key_motion: lg * g.key_motion * v.key_motion_weight,
                 nonkey_motion: lg * v.nonkey_motion_weight,
                 lambda_vel_acc: [v.lambda_vel, v.lambda_acc],
                 edge_keep_ratio: v.edge_keep_ratio,
@@ -387,6 +394,19 @@ mod tests {
         let s = parse(&[
             "--recipe",
             "vanilla",
+            "--profile",
+            "release",
+            "--dqb-weight",
+            "0.5",
+            "--key-motion-weight",
+            "0",
+        ])
+        .unwrap();
+        let g = (s.graph.dqb, s.graph.dqb_rotation, s.graph.key_motion);
+        assert_eq!(g, (0.5 * r.dqb, 0.5 * r.dqb_rotation, 0.0));
+        let s = parse(&[
+            "--recipe",
+            "vanilla",
             "--no-loss-weighting",
             "--checkpoint-every",
             "0",
@@ -396,9 +416,12 @@ mod tests {
         .unwrap();
         assert_eq!(s.graph.anchor_metric, AnchorMetric::Euclidean);
         assert_eq!((s.checkpoint_every, s.graph.r_xyz[2]), (None, 0.5));
-        let bad = ["--recipe", "vanilla", "--lr-position=-1"];
-        let e = crate::util::parse_args::<OptimizeParams>(&[&args[..], &bad].concat()).unwrap_err();
-        assert!(e.to_string().contains("--lr-position"), "{e}");
+        for flag in ["--lr-position=-1", "--dqb-weight=-1"] {
+            let bad = ["--recipe", "vanilla", flag];
+            let e =
+                crate::util::parse_args::<OptimizeParams>(&[&args[..], &bad].concat()).unwrap_err();
+            assert!(e.to_string().contains(flag.split('=').next().unwrap()), "{e}");
+        }
         let e = parse(&["--recipe", "vanilla", "--batch-frames", "0"]).unwrap_err();
         assert!(e.to_string().contains("batch-frames"), "{e}");
         let e = parse(&["--recipe", "usplat4d", "--uncertainty", "u"]).unwrap_err();

@@ -94,6 +94,8 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         nonkey_pose_offsets: None,
         nonkey_offset_l2: None,
         nonkey_motion_weight: None,
+        dqb_weight: None,
+        key_motion_weight: None,
         r_z: None,
         lambda_vel: None,
         lambda_acc: None,
