@@ -33,7 +33,7 @@ fn extreme_view_pipeline_writes_the_paper_tables_for_four_models() {
     let sets =
         ["frames=6", "size=48", "gaussians=1000", "init_gaussians=500", "base_steps=6", "steps=3"];
     let out = run(&d, "extreme-view.yaml", &sets);
-    assert!(out.contains("165 stages: 165 run"), "{out}");
+    assert!(out.contains("177 stages: 177 run"), "{out}");
     let md = std::fs::read_to_string(d.join("out/extreme-view/benchmark/benchmark.md")).unwrap();
     for model in ["Fox", "CesiumMan", "RiggedFigure", "RiggedSimple"] {
         assert!(md.contains(&format!("usplat4d-release on {model} (Δ against vanilla)")), "{md}");
@@ -43,8 +43,15 @@ fn extreme_view_pipeline_writes_the_paper_tables_for_four_models() {
     assert!(md.contains("on the mean over scenes"), "{md}");
     assert!(md.contains("## Ablations (Table 3 form), mean over scenes"), "{md}");
     for range in ["(0°, 60°]", "(60°, 120°]", "(120°, 180°]"] {
-        for m in ["base", "usplat4d-paper", "ablation-a", "ablation-b", "ablation-c", "ablation-d"]
-        {
+        for m in [
+            "base",
+            "smoothness-only",
+            "usplat4d-paper",
+            "ablation-a",
+            "ablation-b",
+            "ablation-c",
+            "ablation-d",
+        ] {
             assert!(md.contains(&format!("| {range} | {m} |")), "{range} {m}:\n{md}");
         }
     }
@@ -52,7 +59,7 @@ fn extreme_view_pipeline_writes_the_paper_tables_for_four_models() {
     assert!(d.join("out/extreme-view/benchmark/benchmark.parquet").exists());
     // a second run has nothing to do
     let again = run(&d, "extreme-view.yaml", &sets);
-    assert!(again.contains("all 165 stages up to date"), "{again}");
+    assert!(again.contains("all 177 stages up to date"), "{again}");
 }
 
 #[test]
