@@ -111,9 +111,11 @@ fn fox_pipeline_refines_a_drifting_prior_with_both_recipes_and_profiles() {
         "max_segments=3",
     ];
     let out = run(&d, "fox.yaml", &sets);
-    assert!(out.contains("39 stages: 39 run"), "{out}");
+    assert!(out.contains("42 stages: 42 run"), "{out}");
     let md = std::fs::read_to_string(d.join("out/fox/prior/benchmark/benchmark.md")).unwrap();
-    for m in ["prior", "vanilla-paper", "vanilla-release", "usplat4d-paper", "usplat4d-release"] {
+    let methods =
+        ["prior", "vanilla-paper", "vanilla-release", "smoothness-only", "usplat4d-paper"];
+    for m in methods.iter().chain(&["usplat4d-release"]) {
         assert!(md.contains(&format!("| (120°, 180°] | {m} |")), "{m}:\n{md}");
     }
     assert!(md.contains("| ablation-c |"), "{md}");
