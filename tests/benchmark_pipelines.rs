@@ -74,11 +74,11 @@ fn dycheck_pipeline_runs_out_of_the_box_on_the_windmill_fox() {
         "steps=3",
     ];
     let out = run(&d, "dycheck.yaml", &sets);
-    assert!(out.contains("18 stages: 18 run"), "{out}");
+    assert!(out.contains("21 stages: 21 run"), "{out}");
     let bench = d.join("out/dycheck/fox-windmill/benchmark/benchmark.md");
     let md = std::fs::read_to_string(bench).unwrap();
-    assert!(md.contains("vanilla vs base vs usplat4d on fox-windmill"), "{md}");
-    assert!(md.contains("| all | usplat4d |"), "{md}");
+    assert!(md.contains("vanilla vs base vs smoothness-only vs usplat4d on fox-windmill"), "{md}");
+    assert!(md.contains("| all | usplat4d |") && md.contains("| all | smoothness-only |"), "{md}");
     let eval = d.join("out/dycheck/fox-windmill/eval/usplat4d");
     let files: Vec<String> = std::fs::read_dir(eval)
         .unwrap()
@@ -87,10 +87,11 @@ fn dycheck_pipeline_runs_out_of_the_box_on_the_windmill_fox() {
     assert!(files.iter().any(|f| f.ends_with(".md")), "{files:?}");
     let page = d.join("out/dycheck/fox-windmill/report/report.html");
     assert!(std::fs::read_to_string(page).unwrap().contains("PCK-T"));
-    // The profile reaches the vanilla continuation, the graph stages and USplat4D (and what
-    // depends on them), not the example, the import or the base fit.
+    // The profile reaches the vanilla continuation, the graph stages, USplat4D and the
+    // smoothness-only baseline (whose graph inputs it changes), and what depends on them; not
+    // the example, the import or the base fit.
     let release = run(&d, "dycheck.yaml", &[&sets[..], &["profile=release"]].concat());
-    assert!(release.contains("18 stages: 12 run, 0 restored from run cache, 6 up to date"));
+    assert!(release.contains("21 stages: 15 run, 0 restored from run cache, 6 up to date"));
     let edges = d.join("out/dycheck/fox-windmill/graph/edges/edges.parquet");
     let reader = TableReader::open::<EdgesTable>(&edges).unwrap();
     let params: serde_json::Value =
