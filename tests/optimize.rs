@@ -288,7 +288,8 @@ fn far_view_psnr(dir: &Dir, model: &str) -> f64 {
 }
 
 /// The smoothness-only baseline of the benchmark pipelines: the usplat4d recipe with every
-/// USplat4D weight at 0, leaving L_rgb and the profile's velocity and acceleration terms.
+/// anchor and graph weight at 0, leaving L_rgb and the profile's velocity and acceleration
+/// terms.
 const SMOOTHNESS_ONLY: [&str; 6] =
     ["--key-anchor-weight", "0", "--nonkey-anchor-weight", "0", "--lambda-graph", "0"];
 
@@ -440,7 +441,7 @@ fn drift_seen(dir: &Dir, ids: &[u32], pairs: &[(usize, usize)]) -> (usize, usize
 /// | usplat4d paper | 0.120 | 23.44 | 0.059 | 24.02 | 0.072 | 23.79 |
 /// | paper, `--anchor-metric release` | 0.149 | 22.27 | 0.104 | 22.59 | 0.101 | 22.54 |
 /// | paper, `--nonkey-metric-frame most-reliable` | 0.146 | 23.84 | 0.156 | 24.19 | 0.121 | 23.84 |
-/// | smoothness only (no USplat4D term) | 0.089 | 23.65 | 0.063 | 24.12 | 0.083 | 23.81 |
+/// | smoothness only (no anchor or graph term) | 0.089 | 23.65 | 0.063 | 24.12 | 0.083 | 23.81 |
 /// | usplat4d release | 0.225 (0.110) | 19.35 | 0.298 (0.080) | 19.29 | 0.288 (0.110) | 19.28 |
 /// | release, `--graph-init-iters 0` | 0.115 (0.110) | 22.98 | 0.075 (0.080) | 22.96 | 0.081 (0.110) | 22.98 |
 ///
