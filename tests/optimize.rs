@@ -374,8 +374,7 @@ fn covered_pixels(dir: &Dir, model: &str, out: &str) -> Vec<Vec<u32>> {
 
 /// Directions for [`Prior::RandomHidden`] (seed 11): every Gaussian whose drifted point the
 /// training camera sees at one of its drifted frames gets a new random direction, up to
-/// `REDRAWS` times, and after that none (it is not drifted). Leaves that prior in
-/// `dir/drifted`.
+/// `REDRAWS` times, and after that none (it is not drifted).
 fn hidden_directions(dir: &Dir, oracle: &Model, seen: &[Vec<u32>]) -> Vec<Option<[f64; 3]>> {
     const REDRAWS: usize = 8;
     let mut rng = usplat4d::util::rng::Rng::new(11);
@@ -450,9 +449,8 @@ fn drift_seen(dir: &Dir, ids: &[u32], pairs: &[(usize, usize)]) -> (usize, usize
 /// displaced point comes out from behind its occluder) and 90 of them pass Eq. 4's colour
 /// test (the fox is nearly one colour: the textureless case of the paper's Appendix on
 /// challenging cases, where wrong priors pass for right), so the uncertainty stage trusts
-/// them; for 24 of the 61
-/// drifted Gaussians (69 pairs) it picks a drifted frame as t̂, where the point lies in front
-/// with some of the lowest u of the scene. There the U⁻¹-weighted anchor holds the drift and
+/// them; for 24 of the 61 drifted Gaussians (69 pairs) it picks a drifted frame as t̂, where
+/// the drifted point is in view. There the U⁻¹-weighted anchor holds the drift and
 /// DQB, relative to t̂, carries it to the other frames: paper 0.157 against vanilla 0.101. On
 /// the 73 pairs whose t̂ is clean, usplat4d is the closer (0.085 against 0.097). A base
 /// model's drift is one its training views do not show, which the other two priors keep: along
