@@ -1,10 +1,12 @@
 //! The recipe's non-image terms, rebuilt whenever density control changes the Gaussians:
-//! - vanilla: the base models' motion locality (paper App. A.2) among all dynamic Gaussians,
-//!   kNN isometry + rigidity (edges and rest lengths at frame 0) plus velocity and
-//!   acceleration, λ_iso = λ_rigid = 1, λ_vel = λ_acc = 0.01, App. A.2's forms, each a mean
-//!   over its terms (edges × frames, Gaussians × frames) as the base models (MoSca, SoM)
-//!   average theirs. App. A.2's sums over every Gaussian and frame outweigh the per-pixel mean
-//!   of L_rgb by about 10⁴, so positions would follow the smoothness terms, not the images;
+//! - vanilla: the base models' motion locality among all dynamic Gaussians, kNN isometry +
+//!   rigidity (edges and rest lengths at frame 0) plus velocity and acceleration in App.
+//!   A.2's forms, each a mean over its terms (edges × frames, Gaussians × frames) as the base
+//!   models (MoSca, SoM) average theirs, with the base model's weights: MoSca's photometric
+//!   phase, λ_iso = λ_rigid = 10, λ_vel = λ_acc = 5 (`--vanilla-knn`, `--vanilla-vel`,
+//!   `--vanilla-acc`). App. A.2's sums over every Gaussian and frame would outweigh the
+//!   per-pixel mean of L_rgb by about 10⁴, so positions would follow the smoothness terms,
+//!   not the images;
 //! - usplat4d: [`GraphObjective`] (L_key + L_non-key) on the graph of the trained Gaussians.
 //!   Its p° and u of a Gaussian are those of the input Gaussian it descends from
 //!   ([`TrainState::origin`]); a new Gaussian is a non-key with its origin's t̂ and edges.
@@ -128,8 +130,14 @@ impl KnnMotion {
         })
     }
 
-    /// Evaluate on `poses`, add gradients, return the weighted terms.
-    pub fn evaluate(&self, poses: &Poses, grads: &mut PoseGrads) -> Vec<(&'static str, f64)> {
+    /// Evaluate on `poses` with `[λ_iso = λ_rigid, λ_vel, λ_acc]`, add gradients, return the
+    /// weighted terms.
+    pub fn evaluate(
+        &self,
+        poses: &Poses,
+        [lk, lv, la]: [f64; 3],
+        grads: &mut PoseGrads,
+    ) -> Vec<(&'static str, f64)> {
         if self.nodes.is_empty() {
             return Vec::new();
         }
@@ -139,29 +147,21 @@ impl KnnMotion {
         let (iso_norm, rigid_norm) = (per(e * nt), per(e * nt.saturating_sub(1)));
         let (vel_norm, acc_norm) = smoothness::smoothness_means(nt, self.nodes.len());
         let [iso, rigid] = motion::stream_frames(poses, &self.nodes, 1, grads, |tr, g| {
-            motion::isometry_rigidity(
-                tr,
-                es,
-                &self.rest,
-                (iso_norm, 1.0),
-                (rigid_norm, 1.0),
-                g,
-                None,
-            )
+            motion::isometry_rigidity(tr, es, &self.rest, (iso_norm, lk), (rigid_norm, lk), g, None)
         });
         let [vel, acc] = smoothness::smoothness(
             poses,
             &self.nodes,
             MotionForm::Paper,
-            (vel_norm, 0.01),
-            (acc_norm, 0.01),
+            (vel_norm, lv),
+            (acc_norm, la),
             grads,
         );
         vec![
-            ("knn_isometry", iso),
-            ("knn_rigidity", rigid),
-            ("velocity", 0.01 * vel),
-            ("acceleration", 0.01 * acc),
+            ("knn_isometry", lk * iso),
+            ("knn_rigidity", lk * rigid),
+            ("velocity", lv * vel),
+            ("acceleration", la * acc),
         ]
     }
 }
@@ -294,11 +294,11 @@ mod tests {
     }
 
     /// Every Gaussian translating by `v` per frame: the rigid terms vanish and the velocity
-    /// term is 0.01 ‖v‖₁ whatever the number of frames and Gaussians (a mean, not a sum).
+    /// term is λ_vel ‖v‖₁ whatever the number of frames and Gaussians (a mean, not a sum).
     #[test]
     fn vanilla_terms_are_means_over_gaussians_and_frames() {
         let v = [0.01f32, -0.02, 0.005];
-        let velocity = |frames: usize, n: usize| {
+        let velocity = |frames: usize, n: usize, weights: [f64; 3]| {
             let mut rng = crate::util::rng::Rng::new(3);
             let p0: Vec<[f32; 3]> = (0..n).map(|_| [0; 3].map(|_| rng.uniform() as f32)).collect();
             let mut poses = Poses::identity(frames, n);
@@ -309,16 +309,18 @@ mod tests {
                 }
             }
             let knn = KnnMotion::from_positions((0..n as u32).collect(), &p0, 4);
-            let terms = knn.evaluate(&poses, &mut PoseGrads::zeros(frames, n));
+            let terms = knn.evaluate(&poses, weights, &mut PoseGrads::zeros(frames, n));
             let get = |name: &str| terms.iter().find(|(k, _)| *k == name).unwrap().1;
             assert!(get("knn_isometry").abs() < 1e-6 && get("knn_rigidity").abs() < 1e-6);
             assert!(get("acceleration").abs() < 1e-6, "{terms:?}");
             get("velocity")
         };
-        let expected = 0.01 * v.iter().map(|x| x.abs() as f64).sum::<f64>();
+        let speed = v.iter().map(|x| x.abs() as f64).sum::<f64>();
         for (frames, n) in [(5, 20), (24, 20), (24, 200)] {
-            let got = velocity(frames, n);
-            assert!((got - expected).abs() < 1e-8, "T={frames} N={n}: {got} vs {expected}");
+            for lv in [0.01, 5.0] {
+                let got = velocity(frames, n, [10.0, lv, 5.0]);
+                assert!((got - lv * speed).abs() < 1e-8 * lv.max(1.0), "T={frames} N={n}: {got}");
+            }
         }
     }
 }

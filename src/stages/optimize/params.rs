@@ -157,14 +157,23 @@ crate::stage_params! {
             r_z: f64 => f64 [check::parsed] { paper "0.01", release "0.1", row "15" },
         }
         heading "Motion" {
-            /// λ_vel of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
+            /// λ_vel of the usplat4d recipe (the vanilla recipe's is `--vanilla-vel`).
             lambda_vel: f64 => f64 [check::parsed] { paper "0.01", release "100", row "52" },
-            /// λ_acc of the usplat4d recipe; the vanilla recipe uses App. A.2's 0.01.
+            /// λ_acc of the usplat4d recipe (the vanilla recipe's is `--vanilla-acc`).
             lambda_acc: f64 => f64 [check::parsed] { paper "0.01", release "1", row "53" },
             /// Fraction of the key-key edges kept each step.
             edge_keep_ratio: f64 => f64 [check::parsed] { paper "1", release "0.8", row "51" },
             /// Neighbours of the vanilla recipe's kNN motion graph.
             knn_k: usize => usize [check::parsed] { paper "8", release "8" },
+            /// λ_iso = λ_rigid of the vanilla recipe's mean kNN isometry and rigidity terms: the
+            /// base model's, MoSca's photometric-phase ARAP weight (USplat4D's App. A.2: 1).
+            vanilla_knn: f64 => f64 [check::non_negative] { paper "10", release "10" },
+            /// λ_vel of the vanilla recipe's mean velocity term: MoSca's photometric-phase
+            /// weight (USplat4D's App. A.2: 0.01).
+            vanilla_vel: f64 => f64 [check::non_negative] { paper "5", release "5" },
+            /// λ_acc of the vanilla recipe's mean acceleration term: MoSca's photometric-phase
+            /// weight (USplat4D's App. A.2: 0.01).
+            vanilla_acc: f64 => f64 [check::non_negative] { paper "5", release "5" },
         }
         heading "Graph initialisation" {
             /// Iteration cap of each fit of the graph initialisation before fine-tuning (the
@@ -237,6 +246,8 @@ pub struct OptimizeSettings {
     pub graph: GraphSettings,
     /// kNN of the vanilla motion graph.
     pub knn_k: usize,
+    /// λ_iso = λ_rigid, λ_vel, λ_acc of the vanilla recipe's mean terms.
+    pub vanilla_weights: [f64; 3],
     /// Density control schedule and thresholds.
     pub density: DensitySettings,
 }
@@ -323,6 +334,7 @@ impl OptimizeSettings {
                 ..g
             },
             knn_k: v.knn_k,
+            vanilla_weights: [v.vanilla_knn, v.vanilla_vel, v.vanilla_acc],
             density: v.density(),
         }
     }
@@ -400,10 +412,14 @@ mod tests {
             "0.5",
             "--key-motion-weight",
             "0",
+            "--vanilla-vel",
+            "4",
         ])
         .unwrap();
         let g = (s.graph.dqb, s.graph.dqb_rotation, s.graph.key_motion);
         assert_eq!(g, (0.5 * r.dqb, 0.5 * r.dqb_rotation, 0.0));
+        let v = OptimizeSettings::defaults(Profile::Release, Recipe::Vanilla).vanilla_weights;
+        assert_eq!(s.vanilla_weights, [v[0], 4.0, v[2]]);
         let s = parse(&[
             "--recipe",
             "vanilla",
@@ -416,7 +432,7 @@ mod tests {
         .unwrap();
         assert_eq!(s.graph.anchor_metric, AnchorMetric::Euclidean);
         assert_eq!((s.checkpoint_every, s.graph.r_xyz[2]), (None, 0.5));
-        for flag in ["--lr-position=-1", "--dqb-weight=-1"] {
+        for flag in ["--lr-position=-1", "--dqb-weight=-1", "--vanilla-acc=-1"] {
             let bad = ["--recipe", "vanilla", flag];
             let e =
                 crate::util::parse_args::<OptimizeParams>(&[&args[..], &bad].concat()).unwrap_err();

@@ -395,8 +395,9 @@ pub fn run_timed(
             || {
                 poses_grad.reset(state.poses.frames, state.n());
                 match &mut objective {
-                    Objective::Knn(k) => t_motion
-                        .time("kNN motion terms", || k.evaluate(&state.poses, &mut poses_grad)),
+                    Objective::Knn(k) => t_motion.time("kNN motion terms", || {
+                        k.evaluate(&state.poses, s.vanilla_weights, &mut poses_grad)
+                    }),
                     Objective::Graph(o) => o.evaluate(
                         &state.poses,
                         &batch,
