@@ -7,7 +7,8 @@
 //! 1. [`lift`]: every frame's visible tracks are unprojected with the depth prior.
 //! 2. [`motion`]: tracks are filled where hidden and each track's neighbourhood gets a
 //!    per-frame rigid fit (weighted Procrustes from the canonical frame), giving nodes with a
-//!    position and an orientation at every frame.
+//!    position and an orientation at every frame, optionally smoothed over time
+//!    (`--temporal-sigma`).
 //! 3. [`seed`]: N Gaussians are sampled on the masked depth of R reference frames spread
 //!    over the video (the orbit shows every side), coloured from the image, sized by SoM's
 //!    3-NN rule, opacity 0.7 (Shape of Motion's `init_fg_from_tracks_3d`; 3DGS's 0.1 suits
@@ -63,6 +64,11 @@ pub struct InitParams {
     #[arg(long, default_value_t = 8, help_heading = "Motion")]
     #[serde(default = "defaults::neighbors")]
     pub neighbors: u32,
+    /// σ, in frames, of the Gaussian that smooths every node's motion over time (0: none, the
+    /// per-frame fits as they are).
+    #[arg(long, default_value_t = 0.0, help_heading = "Motion")]
+    #[serde(default)]
+    pub temporal_sigma: f64,
     /// Seed of the sampling.
     #[arg(long, default_value_t = 0, help_heading = "Gaussians")]
     #[serde(default)]
@@ -120,6 +126,11 @@ fn check(p: &InitParams) -> anyhow::Result<()> {
     anyhow::ensure!(p.gaussians > 0, "--gaussians: must be at least 1");
     anyhow::ensure!(p.reference_frames > 0, "--reference-frames: must be at least 1");
     anyhow::ensure!(p.neighbors >= 3, "--neighbors: must be at least 3");
+    anyhow::ensure!(
+        p.temporal_sigma.is_finite() && p.temporal_sigma >= 0.0,
+        "--temporal-sigma: must be a finite number ≥ 0, got {}",
+        p.temporal_sigma
+    );
     anyhow::ensure!(p.opacity > 0.0 && p.opacity <= 1.0, "--opacity: must be in (0, 1]");
     Ok(())
 }
@@ -172,12 +183,13 @@ pub fn init(p: &InitParams, ctx: &Context) -> anyhow::Result<Summary> {
 
     // 2. Nodes.
     let k = p.neighbors as usize;
-    let nodes = motion::fit_nodes(&obs, k).with_context(|| {
+    let mut nodes = motion::fit_nodes(&obs, k).with_context(|| {
         format!(
             "{}: fewer than 3 tracks are visible on valid foreground depth in two frames or more",
             tracks_path.display()
         )
     })?;
+    motion::smooth_in_time(&mut nodes, tn, p.temporal_sigma);
 
     // 3. Gaussians on the reference frames' masked depth.
     let n = p.gaussians as usize;

@@ -10,6 +10,10 @@
 //!    ones [`FILLED_WEIGHT`]: where a track is hidden, the visible part of its neighbourhood
 //!    says how it moved. Unobserved positions are replaced by that fit's prediction; the
 //!    fit's rotation is the node's orientation `R_k(t)` (identity at c).
+//! 4. Optionally ([`smooth_in_time`]), each node's positions and orientations are smoothed
+//!    over time with a Gaussian of σ frames: every frame's depth prior is lifted on its own,
+//!    so the raw node motion jitters from frame to frame (Shape of Motion smooths its motion
+//!    bases in its first optimisation instead).
 //!
 //! Shapes: positions and rotations are `[T, M]` flattened frame-major (`t·M + k`).
 
@@ -100,6 +104,48 @@ pub fn fit_nodes(obs: &Observations, k: usize) -> Option<Nodes> {
         }
     }
     Some(Nodes { num_nodes: mn, canonical, pos, rot, observed })
+}
+
+/// Smooth every node's motion over time, in place: a Gaussian of `sigma` frames (truncated at
+/// 3σ, renormalised at the ends of the video) on the positions, and the same weights on the
+/// orientations, each neighbour frame's quaternion sign-aligned to the frame's own before
+/// the weighted sum is normalised. `sigma` ≤ 0 leaves the nodes as they are.
+pub fn smooth_in_time(nodes: &mut Nodes, frames: usize, sigma: f64) {
+    let m = nodes.num_nodes;
+    if sigma <= 0.0 || frames < 2 || m == 0 {
+        return;
+    }
+    let reach = ((3.0 * sigma).ceil() as usize).min(frames - 1);
+    let g: Vec<f64> = (0..=reach).map(|d| (-0.5 * (d as f64 / sigma).powi(2)).exp()).collect();
+    let (pos, rot) = (&nodes.pos, &nodes.rot);
+    let smoothed: Vec<Vec<(Vec3, Quat)>> = (0..m)
+        .into_par_iter()
+        .map(|i| {
+            (0..frames)
+                .map(|t| {
+                    let q_t = rot[t * m + i].as_dquat();
+                    let (mut sw, mut sp, mut sq) =
+                        (0.0, DVec3::ZERO, DQuat::from_xyzw(0., 0., 0., 0.));
+                    for s in t.saturating_sub(reach)..(t + reach + 1).min(frames) {
+                        let w = g[t.abs_diff(s)];
+                        let q = rot[s * m + i].as_dquat();
+                        let q = if q.dot(q_t) < 0.0 { -q } else { q };
+                        sw += w;
+                        sp += w * pos[s * m + i].as_dvec3();
+                        sq = sq + q * w;
+                    }
+                    let q = if sq.length_squared() > 0.0 { sq.normalize() } else { q_t };
+                    ((sp / sw).as_vec3(), q.as_quat())
+                })
+                .collect()
+        })
+        .collect();
+    for (i, node) in smoothed.iter().enumerate() {
+        for (t, &(p, q)) in node.iter().enumerate() {
+            nodes.pos[t * m + i] = p;
+            nodes.rot[t * m + i] = q;
+        }
+    }
 }
 
 /// Linear interpolation inside gaps, constant extrapolation outside (at least one `Some`).
@@ -257,6 +303,39 @@ mod tests {
         let half = DQuat::from_rotation_z(std::f64::consts::PI);
         let (fit, ..) = procrustes(a.iter().map(|&p| (p, half * p, 1.0)));
         assert!(fit.angle_between(half) < 1e-9);
+    }
+
+    #[test]
+    fn smoothing_in_time_keeps_steady_motion_and_removes_jitter() {
+        let (tn, m) = (30, 2);
+        let steady = |t: usize| {
+            (Vec3::new(0.1 * t as f32, 1.0, -0.5), Quat::from_rotation_y(0.05 * t as f32))
+        };
+        let mut nodes = Nodes {
+            num_nodes: m,
+            canonical: 0,
+            pos: Vec::new(),
+            rot: Vec::new(),
+            observed: vec![true; tn * m],
+        };
+        for t in 0..tn {
+            let (p, q) = steady(t);
+            let jitter = if t % 2 == 0 { 0.05 } else { -0.05 };
+            // node 0 moves steadily; node 1 the same plus a frame-to-frame jitter (and -q)
+            nodes.pos.extend([p, p + Vec3::splat(jitter)]);
+            nodes.rot.extend([q, -q]);
+        }
+        let before = (nodes.pos.clone(), nodes.rot.clone());
+        smooth_in_time(&mut nodes, tn, 0.0);
+        assert_eq!((&nodes.pos, &nodes.rot), (&before.0, &before.1), "σ = 0 changes nothing");
+        smooth_in_time(&mut nodes, tn, 2.0);
+        for t in 6..tn - 6 {
+            let (p, q) = steady(t);
+            assert!((nodes.pos[t * m] - p).length() < 1e-5, "t={t}: {}", nodes.pos[t * m]);
+            assert!(nodes.rot[t * m].angle_between(q) < 1e-3, "t={t}");
+            assert!((nodes.pos[t * m + 1] - p).length() < 1e-3, "jitter left at t={t}");
+            assert!(nodes.rot[t * m + 1].angle_between(q) < 1e-3, "sign flip at t={t}");
+        }
     }
 
     #[test]
