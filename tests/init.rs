@@ -76,6 +76,9 @@ fn init_reads_only_what_a_monocular_pipeline_has() {
     remove(&scene_dir.join("priors/tracks_2d.parquet"));
     let err = d.fails(&["-q", "init", "--scene", "scene", "--out", "model2"], 2);
     assert!(err.contains("priors/tracks_2d.parquet"), "{err}");
+    let bad = ["-q", "init", "--scene", "scene", "--out", "model3", "--temporal-sigma=-1"];
+    let err = d.fails(&bad, 2);
+    assert!(err.contains("--temporal-sigma"), "{err}");
 }
 
 #[test]
