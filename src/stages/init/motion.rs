@@ -132,7 +132,7 @@ pub fn smooth_in_time(nodes: &mut Nodes, frames: usize, sigma: f64) {
                         let q = if q.dot(q_t) < 0.0 { -q } else { q };
                         sw += w;
                         sp += w * pos[s * m + i].as_dvec3();
-                        sq = sq + q * w;
+                        sq += q * w;
                     }
                     let q = if sq.length_squared() > 0.0 { sq.normalize() } else { q_t };
                     ((sp / sw).as_vec3(), q.as_quat())
