@@ -118,34 +118,25 @@ pub fn smooth_in_time(nodes: &mut Nodes, frames: usize, sigma: f64) {
     let reach = ((3.0 * sigma).ceil() as usize).min(frames - 1);
     let g: Vec<f64> = (0..=reach).map(|d| (-0.5 * (d as f64 / sigma).powi(2)).exp()).collect();
     let (pos, rot) = (&nodes.pos, &nodes.rot);
-    let smoothed: Vec<Vec<(Vec3, Quat)>> = (0..m)
+    let (new_pos, new_rot): (Vec<Vec3>, Vec<Quat>) = (0..frames * m)
         .into_par_iter()
-        .map(|i| {
-            (0..frames)
-                .map(|t| {
-                    let q_t = rot[t * m + i].as_dquat();
-                    let (mut sw, mut sp, mut sq) =
-                        (0.0, DVec3::ZERO, DQuat::from_xyzw(0., 0., 0., 0.));
-                    for s in t.saturating_sub(reach)..(t + reach + 1).min(frames) {
-                        let w = g[t.abs_diff(s)];
-                        let q = rot[s * m + i].as_dquat();
-                        let q = if q.dot(q_t) < 0.0 { -q } else { q };
-                        sw += w;
-                        sp += w * pos[s * m + i].as_dvec3();
-                        sq += q * w;
-                    }
-                    let q = if sq.length_squared() > 0.0 { sq.normalize() } else { q_t };
-                    ((sp / sw).as_vec3(), q.as_quat())
-                })
-                .collect()
+        .map(|at| {
+            let (t, i) = (at / m, at % m);
+            let q_t = rot[at].as_dquat();
+            let (mut sw, mut sp, mut sq) = (0.0, DVec3::ZERO, DQuat::from_xyzw(0., 0., 0., 0.));
+            for s in t.saturating_sub(reach)..(t + reach + 1).min(frames) {
+                let w = g[t.abs_diff(s)];
+                let q = rot[s * m + i].as_dquat();
+                let q = if q.dot(q_t) < 0.0 { -q } else { q };
+                sw += w;
+                sp += w * pos[s * m + i].as_dvec3();
+                sq += q * w;
+            }
+            let q = if sq.length_squared() > 0.0 { sq.normalize() } else { q_t };
+            ((sp / sw).as_vec3(), q.as_quat())
         })
-        .collect();
-    for (i, node) in smoothed.iter().enumerate() {
-        for (t, &(p, q)) in node.iter().enumerate() {
-            nodes.pos[t * m + i] = p;
-            nodes.rot[t * m + i] = q;
-        }
-    }
+        .unzip();
+    (nodes.pos, nodes.rot) = (new_pos, new_rot);
 }
 
 /// Linear interpolation inside gaps, constant extrapolation outside (at least one `Some`).
