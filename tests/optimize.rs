@@ -97,6 +97,10 @@ fn same_bytes_whatever_the_thread_count_and_the_loss_falls() {
     ok(optimize(&dir, "R", &[&["--threads", "2"][..], &common[..]].concat()));
     keep_as(&dir, "T2");
     assert_same_outputs(&dir.join("T1"), &dir.join("T2"));
+    // 6 threads: the batch's image losses in groups of 3 frames, a stream wave per thread
+    ok(optimize(&dir, "R", &[&["--threads", "6"][..], &common[..]].concat()));
+    keep_as(&dir, "T6");
+    assert_same_outputs(&dir.join("T1"), &dir.join("T6"));
     let rows = log_rows(&dir.join("T1"));
     let first: f64 = rows[..3].iter().map(|r| r.loss).sum();
     let last: f64 = rows[rows.len() - 3..].iter().map(|r| r.loss).sum();

@@ -186,7 +186,8 @@ impl TrackGrad {
 /// gradients.
 const BLOCK_ROWS: usize = 1 << 18;
 
-/// Rows gathered by one wave of blocks evaluated in parallel.
+/// Rows gathered by one wave of blocks evaluated in parallel, unless the threads outnumber
+/// the blocks that fit (then one block per thread).
 const WAVE_ROWS: usize = 1 << 20;
 
 /// Evaluate `f` (which returns K term values and adds its gradients into the [`TrackGrad`])
@@ -194,7 +195,7 @@ const WAVE_ROWS: usize = 1 << 20;
 /// frames plus `context` frames before them (terms coupling t−Δ..t need Δ ≤ `context`); its
 /// gradients are added into `grads` (its own frames in parallel, they are disjoint, then its
 /// context frames in block order) and its values in block order. Memory is a few
-/// blocks, not `[T, m]`; the block layout depends on T and m only, so the result does not
+/// blocks (at least one per thread), not `[T, m]`; the block layout depends on T and m only, so the result does not
 /// depend on the number of threads.
 pub fn stream_frames<const K: usize>(
     poses: &Poses,
@@ -224,12 +225,14 @@ fn stream_frames_in<const K: usize>(
     let b = (block_rows / m).max(4);
     let blocks: Vec<std::ops::Range<usize>> =
         (0..nt).step_by(b).map(|lo| lo..(lo + b).min(nt)).collect();
-    // Blocks per wave: as many as fit in WAVE_ROWS, rounded down to a multiple of the
-    // threads so that no thread idles through a wave (3 blocks on 2 threads take as long as
-    // 4). Waves only bound memory: every gradient row still receives its own block's
-    // values before the next block's context values, so the result is the same.
+    // Blocks per wave: as many as fit in WAVE_ROWS (at most 8) but at least one per thread,
+    // since a block is about two sequential tasks (a 16-core host ran 3 blocks at a time
+    // otherwise); rounded down to a multiple of the threads so that no thread idles through
+    // a wave (3 blocks on 2 threads take as long as 4). Waves only bound memory: every
+    // gradient row still receives its own block's values before the next block's context
+    // values, so the result is the same.
     let threads = rayon::current_num_threads().max(1);
-    let fit = (wave_rows / ((b + context) * m)).clamp(1, 8);
+    let fit = (wave_rows / ((b + context) * m)).clamp(1, 8).max(threads);
     let wave = if fit >= threads { fit - fit % threads } else { fit };
     let mut pool: Vec<(Track, TrackGrad, [f64; K])> = Vec::new();
     for w in blocks.chunks(wave) {
@@ -902,8 +905,9 @@ mod tests {
         assert!(close(got_g.position.as_flattened(), want_g.position.as_flattened()));
         assert!(close(got_g.rotation.as_flattened(), want_g.rotation.as_flattened()));
         assert!(want_g.position[7][0] != 0.0, "gradients reach the poses");
-        // 6 blocks in waves of 3 blocks (1 or 3 threads) or 2 (2 threads): the same bits.
-        for threads in [1, 2, 3] {
+        // 6 blocks in waves of 3 blocks (1 or 3 threads), 2 (2 threads) or one per thread
+        // (4 and 8 threads): the same bits.
+        for threads in [1, 2, 3, 4, 8] {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             let mut g = PoseGrads::zeros(t, n);
             let v = pool.install(|| stream_frames_in(&poses, &nodes, 3, layout, &mut g, terms));

@@ -3,8 +3,9 @@
 //! App. A.3: colour, mask, depth, and the 2D tracks to the next batch frame when the scene
 //! has them), run the backward pass and chain the Gaussians' gradients to the trained
 //! parameters (per-frame pose, log-scale, opacity logit, colour/SH). The batch's loss is the
-//! mean over its frames. Frames are processed one after the other (the renderer is parallel
-//! inside), so gradients are summed in batch order whatever the thread count.
+//! mean over its frames. Frames are rendered one after the other (the renderer is parallel
+//! inside), their image losses in parallel, and their gradients summed in batch order, so
+//! the result does not depend on the thread count.
 //!
 //! It also accumulates, per Gaussian, the norm of the screen-space position gradient in NDC
 //! units (pixels · W/2, H/2, per view, as 3DGS and gsplat do) that density control uses.
@@ -295,94 +296,154 @@ pub fn image_step<R: DifferentiableRenderer>(
     let mut screen_count = vec![0u32; n];
     let mut terms: Vec<(&'static str, f64)> = Vec::new();
     let inv_b = 1.0 / batch.len().max(1) as f32;
-    for (j, &t) in batch.iter().enumerate() {
-        let cam = views.training_camera(t);
-        // The track term's target: the next frame of the batch (its positions rendered as
-        // features from this frame, Shape of Motion's scheme).
-        let target_row = (j + 1) % batch.len();
-        let target = batch[target_row];
-        let target_cam = views.training_camera(target);
-        let tracks = timer.time("load ground truth", || {
-            if weights.track > 0.0 && target != t {
-                views.tracks(t, target, weights.track_form)
-            } else {
-                Ok(Vec::new())
+    // Frames go in groups: forward renders one frame after another (the renderer is parallel
+    // inside), then the group's image losses in parallel, then backward and chaining in
+    // batch order. One frame's loss is too small to fill many cores (on a 16-core GPU host it
+    // was half the step); on few cores one frame at a time keeps its images in cache.
+    let group = (rayon::current_num_threads() / 2).clamp(1, batch.len().max(1));
+    for first in (0..batch.len()).step_by(group) {
+        let (mut frames, mut saved_states) = (Vec::with_capacity(group), Vec::new());
+        for j in first..(first + group).min(batch.len()) {
+            let t = batch[j];
+            // The track term's target: the next frame of the batch (its positions rendered as
+            // features from this frame, Shape of Motion's scheme).
+            let target_row = (j + 1) % batch.len();
+            let target = batch[target_row];
+            let target_cam = views.training_camera(target);
+            let tracks = timer.time("load ground truth", || {
+                if weights.track > 0.0 && target != t {
+                    views.tracks(t, target, weights.track_form)
+                } else {
+                    Ok(Vec::new())
+                }
+            })?;
+            let nf = if tracks.is_empty() { 0 } else { 3 };
+            let mut features = vec![0.0f32; n * nf];
+            if nf > 0 {
+                write_target_features(&mut features, nf, 0, state.positions(target), &target_cam);
             }
-        })?;
-        let nf = if tracks.is_empty() { 0 } else { 3 };
-        let mut features = vec![0.0f32; n * nf];
-        if nf > 0 {
-            write_target_features(&mut features, nf, 0, state.positions(target), &target_cam);
+            let cam = views.training_camera(t);
+            let inputs = frame_inputs(state, t, &scales, &opacities, colors, &features, nf);
+            let (out, saved) = timer
+                .time("render forward", || {
+                    renderer.render_with_saved(&cam, &inputs, settings, Cutoff::Hard)
+                })
+                .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
+            let truth = timer.time("load ground truth", || views.truth(t, settings.background))?;
+            frames.push(BatchFrame {
+                row: j,
+                t,
+                cam,
+                target_row,
+                target_cam,
+                tracks,
+                features,
+                out,
+                truth,
+            });
+            saved_states.push(saved);
         }
-        let inputs = SplatInputs {
-            means: state.positions(t),
-            quats: state.rotations(t),
-            scales: &scales,
-            opacities: &opacities,
-            colors,
-            features: &features,
-            num_features: nf,
-        };
-        let (out, saved) = timer
-            .time("render forward", || {
-                renderer.render_with_saved(&cam, &inputs, settings, Cutoff::Hard)
-            })
-            .map_err(|e| anyhow::anyhow!("frame {t}: render: {e}"))?;
-        let truth = timer.time("load ground truth", || views.truth(t, settings.background))?;
-        let sets = [TrackSet { block: 0, camera: &target_cam, tracks: &tracks }];
-        let targets = FrameTargets {
-            rgb: &truth.rgb,
-            valid: None,
-            mask: truth.mask.as_deref(),
-            depth: truth.depth.as_deref(),
-            tracks: if nf > 0 { &sets } else { &[] },
-        };
-        let (frame_terms, v) = timer
-            .time("image loss", || rgb_loss(&out, &targets, weights))
-            .map_err(|e| anyhow::anyhow!("frame {t}: {e}"))?;
-        for (name, value) in frame_terms {
-            match terms.iter_mut().find(|(k, _)| *k == name) {
-                Some((_, s)) => *s += value / batch.len() as f64,
-                None => terms.push((name, value / batch.len() as f64)),
+        let losses: Vec<_> = timer.time("image loss", || {
+            frames
+                .par_iter()
+                .map(|f| {
+                    let sets = [TrackSet { block: 0, camera: &f.target_cam, tracks: &f.tracks }];
+                    let targets = FrameTargets {
+                        rgb: &f.truth.rgb,
+                        valid: None,
+                        mask: f.truth.mask.as_deref(),
+                        depth: f.truth.depth.as_deref(),
+                        tracks: if f.features.is_empty() { &[] } else { &sets },
+                    };
+                    rgb_loss(&f.out, &targets, weights)
+                })
+                .collect()
+        });
+        for ((f, saved), loss) in frames.iter().zip(saved_states).zip(losses) {
+            let (j, t) = (f.row, f.t);
+            let (frame_terms, v) = loss.map_err(|e| anyhow::anyhow!("frame {t}: {e}"))?;
+            for (name, value) in frame_terms {
+                match terms.iter_mut().find(|(k, _)| *k == name) {
+                    Some((_, s)) => *s += value / batch.len() as f64,
+                    None => terms.push((name, value / batch.len() as f64)),
+                }
             }
+            let nf = f.features.len() / n.max(1);
+            let (cam, inputs) =
+                (&f.cam, frame_inputs(state, t, &scales, &opacities, colors, &f.features, nf));
+            let g = timer
+                .time("render backward", || renderer.backward(cam, &inputs, settings, &saved, &v))
+                .map_err(|e| anyhow::anyhow!("frame {t}: backward: {e}"))?;
+            let chain = timer.start();
+            let (half_w, half_h) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);
+            let k3 = state.sh_rest.len() / n.max(1);
+            for i in 0..n {
+                let p = &mut grads.poses.position[j * n + i];
+                for k in 0..3 {
+                    p[k] += inv_b * g.means[i][k];
+                }
+                let q = &mut grads.poses.rotation[j * n + i];
+                for k in 0..4 {
+                    q[k] += inv_b * g.quats[i][k];
+                }
+                for k in 0..3 {
+                    grads.log_scale[i][k] += inv_b * g.scales[i][k] * scales[i][k];
+                    grads.color[i][k] += inv_b * g.colors[i][k];
+                }
+                let o = sigmoid(state.logit_opacity[i]);
+                grads.logit_opacity[i] += inv_b * g.opacities[i] * o * (1.0 - o);
+                if f.out.aux.visible[i] {
+                    let [gx, gy] = g.means2d[i];
+                    screen_grad[i] += ((gx * half_w).powi(2) + (gy * half_h).powi(2)).sqrt();
+                    screen_count[i] += 1;
+                }
+            }
+            for (d, s) in grads.sh_rest.iter_mut().zip(&g.sh_rest) {
+                *d += inv_b * s;
+            }
+            if nf > 0 {
+                let scaled: Vec<f32> = g.features.iter().map(|v| inv_b * v).collect();
+                let at = &mut grads.poses.position[f.target_row * n..(f.target_row + 1) * n];
+                add_target_position_grads(at, &scaled, nf, 0, &f.target_cam);
+            }
+            debug_assert_eq!(grads.sh_rest.len(), n * k3);
+            timer.stop("chain to parameters", chain);
         }
-        let g = timer
-            .time("render backward", || renderer.backward(&cam, &inputs, settings, &saved, &v))
-            .map_err(|e| anyhow::anyhow!("frame {t}: backward: {e}"))?;
-        let chain = timer.start();
-        let (half_w, half_h) = (0.5 * cam.width as f32, 0.5 * cam.height as f32);
-        let k3 = state.sh_rest.len() / n.max(1);
-        for i in 0..n {
-            let p = &mut grads.poses.position[j * n + i];
-            for k in 0..3 {
-                p[k] += inv_b * g.means[i][k];
-            }
-            let q = &mut grads.poses.rotation[j * n + i];
-            for k in 0..4 {
-                q[k] += inv_b * g.quats[i][k];
-            }
-            for k in 0..3 {
-                grads.log_scale[i][k] += inv_b * g.scales[i][k] * scales[i][k];
-                grads.color[i][k] += inv_b * g.colors[i][k];
-            }
-            let o = sigmoid(state.logit_opacity[i]);
-            grads.logit_opacity[i] += inv_b * g.opacities[i] * o * (1.0 - o);
-            if out.aux.visible[i] {
-                let [gx, gy] = g.means2d[i];
-                screen_grad[i] += ((gx * half_w).powi(2) + (gy * half_h).powi(2)).sqrt();
-                screen_count[i] += 1;
-            }
-        }
-        for (d, s) in grads.sh_rest.iter_mut().zip(&g.sh_rest) {
-            *d += inv_b * s;
-        }
-        if nf > 0 {
-            let scaled: Vec<f32> = g.features.iter().map(|v| inv_b * v).collect();
-            let at = &mut grads.poses.position[target_row * n..(target_row + 1) * n];
-            add_target_position_grads(at, &scaled, nf, 0, &target_cam);
-        }
-        debug_assert_eq!(grads.sh_rest.len(), n * k3);
-        timer.stop("chain to parameters", chain);
     }
     Ok(ImageStep { terms, screen_grad, screen_count })
+}
+
+/// One batch frame between its forward render and its backward pass.
+struct BatchFrame<'a> {
+    /// Its row in the batch, and its frame.
+    row: usize,
+    t: usize,
+    cam: RenderCamera,
+    target_row: usize,
+    target_cam: RenderCamera,
+    tracks: Vec<Track>,
+    features: Vec<f32>,
+    out: crate::render::RenderOutput,
+    truth: Cow<'a, FrameTruth>,
+}
+
+/// The renderer's inputs for frame `t` of `state`.
+fn frame_inputs<'a>(
+    state: &'a TrainState,
+    t: usize,
+    scales: &'a [[f32; 3]],
+    opacities: &'a [f32],
+    colors: ColorSource<'a>,
+    features: &'a [f32],
+    num_features: usize,
+) -> SplatInputs<'a> {
+    SplatInputs {
+        means: state.positions(t),
+        quats: state.rotations(t),
+        scales,
+        opacities,
+        colors,
+        features,
+        num_features,
+    }
 }
