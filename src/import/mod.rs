@@ -60,10 +60,7 @@ pub fn write_model(
     ctx: &Context,
 ) -> anyhow::Result<()> {
     let gaussians = model.gaussians();
-    let sh = match model.sh_frame() {
-        ShFrame::World => "world",
-        ShFrame::Local => "local",
-    };
+    let sh = model.sh_frame().name();
     let t_count = model.num_frames();
     let bar = ctx.progress(t_count as u64, "frames");
     let frames = (0..t_count).map(|t| {

@@ -108,6 +108,16 @@ pub enum ShFrame {
     Local,
 }
 
+impl ShFrame {
+    /// Its name in a model's metadata: `world` or `local`.
+    pub fn name(self) -> &'static str {
+        match self {
+            ShFrame::World => "world",
+            ShFrame::Local => "local",
+        }
+    }
+}
+
 /// Colour of each Gaussian.
 #[derive(Debug, Clone, Copy)]
 pub enum ColorSource<'a> {

@@ -38,6 +38,8 @@ pub struct TrainingViews {
     cameras: Vec<Camera>,
     /// `[T]` the cameras that render them (the model's own when it has them).
     render_cameras: Vec<Camera>,
+    /// The frame the model's SH colours are evaluated in (MoSca: local).
+    sh_frame: ShFrame,
     /// The scene directory the cameras' paths are relative to.
     scene: Scene,
     /// How the scene's images' alpha is read.
@@ -95,6 +97,7 @@ impl TrainingViews {
         Ok(TrainingViews {
             cameras,
             render_cameras,
+            sh_frame: model.sh_frame,
             scene: scene.clone(),
             gt_alpha: scene.gt_alpha()?,
             tracks,
@@ -288,7 +291,7 @@ pub fn image_step<R: DifferentiableRenderer>(
             degree: state.sh_degree,
             dc: &state.color,
             rest: &state.sh_rest,
-            frame: ShFrame::World,
+            frame: views.sh_frame,
         }
     };
     grads.reset(state, batch.len());

@@ -22,7 +22,7 @@ use super::state::{StateGrads, TrainState};
 use super::step::{TrainingViews, image_step};
 use super::timing::PhaseTimes;
 use crate::context::Context;
-use crate::model::Model;
+use crate::model::{Model, SH_FRAME_KEY};
 use crate::render::RenderSettings;
 use crate::scene::Scene;
 use crate::tables::edges::Edges;
@@ -505,7 +505,7 @@ pub fn run_timed(
         Objective::Graph(o) => Some(o.learned_edges()),
         Objective::Knn(_) => None,
     };
-    write_outputs(p, &s, &c, graph.as_ref().zip(learned.as_ref()))?;
+    write_outputs(p, &s, &model, &c, graph.as_ref().zip(learned.as_ref()))?;
     let dir = checkpoint::dir_of(&p.out);
     if dir.exists() {
         std::fs::remove_dir_all(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
@@ -514,10 +514,13 @@ pub fn run_timed(
 }
 
 /// The trained model, the training log, and (usplat4d) the roles and graph of the trained
-/// Gaussians: a new Gaussian is a non-key with its origin's t̂ and non-key edges.
+/// Gaussians: a new Gaussian is a non-key with its origin's t̂ and non-key edges. The model
+/// keeps what the input model carries besides its Gaussians: its SH frame, its own training
+/// cameras and the scene-to-model similarity (an imported base stays one).
 fn write_outputs(
     p: &OptimizeParams,
     s: &OptimizeSettings,
+    input: &Model,
     c: &Checkpoint,
     graph: Option<(&GraphInputs, &Edges)>,
 ) -> anyhow::Result<()> {
@@ -527,8 +530,11 @@ fn write_outputs(
         &p.out,
         &st.to_gaussians(),
         (0..st.frames()).map(|t| Ok(st.frame_state(t))),
-        &prov,
+        &prov.clone().with_metadata(SH_FRAME_KEY, input.sh_frame.name()),
     )?;
+    if let (Some(cameras), Some(sim)) = (&input.cameras, &input.scene_to_model) {
+        Model::save_cameras(&p.out, cameras, sim, &prov)?;
+    }
     tables::training_log::write(
         &p.out.join(tables::training_log::TrainingLogTable::file_name()),
         &c.log,
