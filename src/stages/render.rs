@@ -202,10 +202,7 @@ fn write_manifest(
         "count": count,
         "background": p.background,
         "alpha_max": p.alpha_max.to_string().parse::<f64>().unwrap_or(f64::NAN),
-        "sh_frame": match sh_frame {
-            ShFrame::World => "world",
-            ShFrame::Local => "local",
-        },
+        "sh_frame": sh_frame.name(),
         "depth": p.depth,
         "version": crate::VERSION,
     });
