@@ -110,6 +110,23 @@ fn same_bytes_whatever_the_thread_count_and_the_loss_falls() {
     dir.ok(&["check", "T1"]);
 }
 
+/// `--image-batch sum` (the release's) adds the batch frames' image terms where `mean`
+/// averages them: at step 0 (the same model) each term is the batch size times as large.
+#[test]
+fn image_batch_sum_adds_the_frames_terms() {
+    let dir = Dir::new();
+    tiny_fox(&dir);
+    grey_model(&dir);
+    let common = ["--steps", "1", "--batch-frames", "4", "--profile", "release"];
+    let rgb = |reduction: &str| {
+        ok(optimize(&dir, reduction, &[&common[..], &["--image-batch", reduction]].concat()));
+        let row = &log_rows(&dir.join(reduction))[0];
+        row.terms.iter().find(|(k, _)| k == "rgb").unwrap().1
+    };
+    let (mean, sum) = (rgb("mean"), rgb("sum"));
+    assert!(mean > 0.0 && (sum - 4.0 * mean).abs() < 1e-9 * sum, "sum {sum}, mean {mean}");
+}
+
 #[test]
 fn density_control_adds_gaussians_with_fresh_ids() {
     let dir = Dir::new();

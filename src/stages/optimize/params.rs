@@ -103,6 +103,10 @@ crate::stage_params! {
             lambda_depth: f64 => f64 [check::parsed] { paper "0.5", release "0.1" },
             /// Weight of the 2D track term (paper: SoM's; release: the iPhone config).
             lambda_track: f64 => f64 [check::parsed] { paper "2", release "0.1" },
+            /// How a step combines its batch frames' image terms: `mean` (one view's scale, as
+            /// the base models weigh L_rgb; MoSca fits one view a step) or `sum` (the release's
+            /// `photometric_fit` adds its 8 views' losses; §5.3).
+            image_batch: Reduction => Reduction [check::choice] { paper "mean", release "sum" },
         }
         heading "Graph" {
             /// Weight of the whole graph loss (its DQB and key-motion terms); the key rigidity
@@ -301,6 +305,7 @@ impl OptimizeSettings {
                 mask: v.lambda_mask,
                 depth: v.lambda_depth,
                 track: v.lambda_track,
+                batch: v.image_batch,
                 ..ImageLossWeights::defaults(v.profile)
             },
             graph: GraphSettings {
@@ -380,6 +385,8 @@ mod tests {
         assert_eq!((p.graph.key_motion, r.graph.key_motion), (1.0, 200.0));
         assert_eq!((p.graph.lambda_vel_acc, r.graph.lambda_vel_acc), ([0.01, 0.01], [100.0, 1.0]));
         assert_eq!((p.density.density_start, r.density.density_start), (0.10, 0.01));
+        // the release's photometric_fit adds its 8 views' image losses
+        assert_eq!((p.image.batch, r.image.batch), (Reduction::Mean, Reduction::Sum));
         assert_eq!(p.lr, r.lr, "the paper gives no learning rates: both use the release's");
     }
 

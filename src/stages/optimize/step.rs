@@ -3,13 +3,15 @@
 //! App. A.3: colour, mask, depth, and the 2D tracks to the next batch frame when the scene
 //! has them), run the backward pass and chain the Gaussians' gradients to the trained
 //! parameters (per-frame pose, log-scale, opacity logit, colour/SH). The batch's loss is the
-//! mean over its frames. Frames are rendered one after the other (the renderer is parallel
-//! inside), their image losses in parallel, and their gradients summed in batch order, so
-//! the result does not depend on the thread count.
+//! mean over its frames or their sum (`--image-batch`: the release adds its 8 views').
+//! Frames are rendered one after the other (the renderer is parallel inside), their image
+//! losses in parallel, and their gradients summed in batch order, so the result does not
+//! depend on the thread count.
 //!
 //! It also accumulates, per Gaussian, the norm of the screen-space position gradient in NDC
 //! units (pixels · W/2, H/2, per view, as 3DGS and gsplat do) that density control uses.
 
+use super::graph_loss::Reduction;
 use super::image_loss::track::{
     Track, add_target_position_grads, interval_weight, tracks_between, write_target_features,
 };
@@ -269,8 +271,8 @@ pub struct ImageStep {
 
 /// L_rgb and its gradients over the batch frames `batch` (frame indices, in order), rendered
 /// by `renderer` (the CPU, or the GPU that `--device` names); `grads` is reset to the
-/// gradients of the batch-mean L_rgb, its pose row j holding frame `batch[j]`'s. Each
-/// phase's wall time is added to `timer`.
+/// gradients of the batch's L_rgb (the mean or sum of its frames', `weights.batch`), its
+/// pose row j holding frame `batch[j]`'s. Each phase's wall time is added to `timer`.
 pub fn image_step<R: DifferentiableRenderer>(
     renderer: &R,
     state: &TrainState,
@@ -298,7 +300,11 @@ pub fn image_step<R: DifferentiableRenderer>(
     let mut screen_grad = vec![0.0f32; n];
     let mut screen_count = vec![0u32; n];
     let mut terms: Vec<(&'static str, f64)> = Vec::new();
-    let inv_b = 1.0 / batch.len().max(1) as f32;
+    // The batch's terms are the mean of its frames' or their sum (`weights.batch`).
+    let (inv_b, per_frame) = match weights.batch {
+        Reduction::Mean => (1.0 / batch.len().max(1) as f32, batch.len() as f64),
+        Reduction::Sum => (1.0, 1.0),
+    };
     // Frames go in groups: forward renders one frame after another (the renderer is parallel
     // inside), then the group's image losses in parallel, then backward and chaining in
     // batch order. One frame's loss is too small to fill many cores (on a 16-core GPU host it
@@ -367,8 +373,8 @@ pub fn image_step<R: DifferentiableRenderer>(
             let (frame_terms, v) = loss.map_err(|e| anyhow::anyhow!("frame {t}: {e}"))?;
             for (name, value) in frame_terms {
                 match terms.iter_mut().find(|(k, _)| *k == name) {
-                    Some((_, s)) => *s += value / batch.len() as f64,
-                    None => terms.push((name, value / batch.len() as f64)),
+                    Some((_, s)) => *s += value / per_frame,
+                    None => terms.push((name, value / per_frame)),
                 }
             }
             let nf = f.features.len() / n.max(1);

@@ -83,6 +83,7 @@ pub fn run(p: &BenchOptimizeParams, ctx: &Context) -> anyhow::Result<()> {
         lambda_mask: None,
         lambda_depth: None,
         lambda_track: None,
+        image_batch: None,
         lambda_graph: None,
         key_anchor_weight: None,
         nonkey_anchor_weight: None,

@@ -26,6 +26,7 @@ pub use depth::DepthRegion;
 pub use photometric::RgbForm;
 pub use track::{Track, TrackForm, TrackSet};
 
+use super::graph_loss::Reduction;
 use crate::metrics::ssim_grad::SsimPadding;
 use crate::render::{ImageGrads, RenderOutput};
 use crate::stages::params::Profile;
@@ -93,6 +94,10 @@ pub struct ImageLossWeights {
     /// Per-track error and reduction [paper `Som { trim 0.98 }`; release `Mosca { clamp 100
     /// px }`].
     pub track_form: TrackForm,
+    /// How a step combines its batch frames' terms [paper `Mean`: one view's scale, as the
+    /// base models weigh L_rgb against their other terms (MoSca fits one view a step);
+    /// release `Sum`: its `photometric_fit` adds the 8 views' losses].
+    pub batch: Reduction,
 }
 
 impl ImageLossWeights {
@@ -109,6 +114,7 @@ impl ImageLossWeights {
                 depth_region: DepthRegion::Foreground,
                 track: 2.0,
                 track_form: TrackForm::Som { trim_quantile: 0.98 },
+                batch: Reduction::Mean,
             },
             Profile::Release => ImageLossWeights {
                 rgb: 1.0,
@@ -120,6 +126,7 @@ impl ImageLossWeights {
                 depth_region: DepthRegion::ValidPrior,
                 track: 0.1,
                 track_form: TrackForm::Mosca { clamp_px: 100.0 },
+                batch: Reduction::Sum,
             },
         }
     }
