@@ -34,6 +34,14 @@ fn grey_model(dir: &Dir) {
     Model::save(&dir.join("grey"), &g, frames, &Provenance::default()).unwrap();
 }
 
+/// A directory holding the tiny Fox scene and its grey start model.
+fn grey_fox() -> Dir {
+    let dir = Dir::new();
+    tiny_fox(&dir);
+    grey_model(&dir);
+    dir
+}
+
 fn optimize(dir: &Dir, out: &str, extra: &[&str]) -> std::process::Output {
     let base = ["optimize", "--model", "grey", "--scene", "S", "--recipe", "vanilla"];
     dir.run(&[&base[..], &["--out", out], extra].concat())
@@ -69,9 +77,7 @@ fn keep_as(dir: &Dir, name: &str) {
 
 #[test]
 fn killed_run_resumes_from_its_checkpoint_with_the_same_bytes() {
-    let dir = Dir::new();
-    tiny_fox(&dir);
-    grey_model(&dir);
+    let dir = grey_fox();
     let common = ["--steps", "6", "--checkpoint-every", "2", "--batch-frames", "3"];
     ok(optimize(&dir, "R", &common));
     assert!(!dir.join("R.ckpt").exists(), "a finished run removes its checkpoint");
@@ -88,9 +94,7 @@ fn killed_run_resumes_from_its_checkpoint_with_the_same_bytes() {
 
 #[test]
 fn same_bytes_whatever_the_thread_count_and_the_loss_falls() {
-    let dir = Dir::new();
-    tiny_fox(&dir);
-    grey_model(&dir);
+    let dir = grey_fox();
     let common = ["--steps", "12", "--batch-frames", "4", "--lr-color", "0.05"];
     ok(optimize(&dir, "R", &[&["--threads", "1"][..], &common[..]].concat()));
     keep_as(&dir, "T1");
@@ -114,9 +118,7 @@ fn same_bytes_whatever_the_thread_count_and_the_loss_falls() {
 /// averages them: at step 0 (the same model) each term is the batch size times as large.
 #[test]
 fn image_batch_sum_adds_the_frames_terms() {
-    let dir = Dir::new();
-    tiny_fox(&dir);
-    grey_model(&dir);
+    let dir = grey_fox();
     let common = ["--steps", "1", "--batch-frames", "4", "--profile", "release"];
     let rgb = |reduction: &str| {
         ok(optimize(&dir, reduction, &[&common[..], &["--image-batch", reduction]].concat()));
@@ -129,9 +131,7 @@ fn image_batch_sum_adds_the_frames_terms() {
 
 #[test]
 fn density_control_adds_gaussians_with_fresh_ids() {
-    let dir = Dir::new();
-    tiny_fox(&dir);
-    grey_model(&dir);
+    let dir = grey_fox();
     let schedule = ["--density-start", "0", "--densify-every", "2", "--densify-grad", "0"];
     ok(optimize(
         &dir,
