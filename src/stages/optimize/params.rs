@@ -107,6 +107,15 @@ crate::stage_params! {
             /// the base models weigh L_rgb; MoSca fits one view a step) or `sum` (the release's
             /// `photometric_fit` adds its 8 views' losses; §5.3).
             image_batch: Reduction => Reduction [check::choice] { paper "mean", release "sum" },
+            /// The 2D track term acts at steps that are multiples of this (paper: Shape of
+            /// Motion's, every step; release: MoSca's `track_loss_interval`, iPhone config).
+            track_every: usize => usize [check::count] { paper "1", release "3" },
+            /// Steps without the track term after the start and after each opacity reset
+            /// (release: MoSca's `track_loss_protect_steps`).
+            track_pause: u32 => u32 [check::parsed] { paper "0", release "100" },
+            /// Whether a step that carries the track term adds to density control's gradient
+            /// statistics (release: no, MoSca's `record_flag` with its `native_add3` renderer).
+            track_density_stats: bool => bool [check::parsed] { paper "true", release "false" },
         }
         heading "Graph" {
             /// Weight of the whole graph loss (its DQB and key-motion terms); the key rigidity
@@ -254,6 +263,29 @@ pub struct OptimizeSettings {
     pub vanilla_weights: [f64; 3],
     /// Density control schedule and thresholds.
     pub density: DensitySettings,
+    /// When the 2D track term acts.
+    pub track: TrackSchedule,
+}
+
+/// When the 2D track term acts (MoSca's `track_loss_interval` and `track_loss_protect_steps`)
+/// and whether its steps feed density control.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct TrackSchedule {
+    /// The term acts at steps that are multiples of this.
+    pub every: usize,
+    /// Steps without it after the start and after each opacity reset.
+    pub pause: u32,
+    /// Whether a step that carries it adds to the density statistics.
+    pub density_stats: bool,
+}
+
+impl TrackSchedule {
+    /// Whether the track term acts at `step`, the latest opacity reset before it being at
+    /// step `last_reset` (0 when there was none: MoSca counts the pause from the start).
+    pub fn active(&self, step: u32, last_reset: u32) -> bool {
+        (step as usize).is_multiple_of(self.every.max(1))
+            && (self.pause == 0 || step > last_reset + self.pause)
+    }
 }
 
 impl DensitySettings {
@@ -263,6 +295,11 @@ impl DensitySettings {
         let (lo, hi) = (self.density_start * steps as f32, self.density_end * steps as f32);
         let s = step as f32;
         s >= lo && s < hi && step > 0 && step.is_multiple_of(self.densify_every.max(1))
+    }
+
+    /// The latest step before `step` at which opacities were reset, 0 if none.
+    pub fn last_reset_before(&self, step: u32, steps: u32) -> u32 {
+        (1..step).rev().find(|&r| self.reset(r, steps)).unwrap_or(0)
     }
 
     /// Whether opacities are reset at `step` (inside the active window only).
@@ -341,6 +378,11 @@ impl OptimizeSettings {
             knn_k: v.knn_k,
             vanilla_weights: [v.vanilla_knn, v.vanilla_vel, v.vanilla_acc],
             density: v.density(),
+            track: TrackSchedule {
+                every: v.track_every,
+                pause: v.track_pause,
+                density_stats: v.track_density_stats,
+            },
         }
     }
 }
@@ -385,9 +427,29 @@ mod tests {
         assert_eq!((p.graph.key_motion, r.graph.key_motion), (1.0, 200.0));
         assert_eq!((p.graph.lambda_vel_acc, r.graph.lambda_vel_acc), ([0.01, 0.01], [100.0, 1.0]));
         assert_eq!((p.density.density_start, r.density.density_start), (0.10, 0.01));
-        // the release's photometric_fit adds its 8 views' image losses
+        // the release's photometric_fit adds its 8 views' image losses, takes the track loss
+        // every 3rd step after a pause, and records no density statistics then
         assert_eq!((p.image.batch, r.image.batch), (Reduction::Mean, Reduction::Sum));
+        let (pt, rt) = (p.track, r.track);
+        assert_eq!((pt.every, pt.pause, pt.density_stats), (1, 0, true));
+        assert_eq!((rt.every, rt.pause, rt.density_stats), (3, 100, false));
         assert_eq!(p.lr, r.lr, "the paper gives no learning rates: both use the release's");
+    }
+
+    /// The release's track schedule over 1,600 steps: every 3rd step, none in the first 100
+    /// steps nor in the 100 after the opacity reset at step 1,000.
+    #[test]
+    fn release_track_schedule_pauses_after_the_start_and_each_reset() {
+        let r = OptimizeSettings::defaults(Profile::Release, Recipe::Usplat4d);
+        let on = |step: u32| r.track.active(step, r.density.last_reset_before(step, 1600));
+        assert_eq!(r.density.last_reset_before(1000, 1600), 0);
+        assert_eq!(r.density.last_reset_before(1001, 1600), 1000);
+        let steps: Vec<u32> = (0..1600).filter(|&t| on(t)).collect();
+        assert_eq!(steps.first(), Some(&102));
+        assert!(steps.iter().all(|t| t % 3 == 0 && !(1000..=1100).contains(t)));
+        assert!(on(999) && on(1101) && !on(1002));
+        let p = OptimizeSettings::defaults(Profile::Paper, Recipe::Usplat4d);
+        assert!((0..1600).all(|t| p.track.active(t, p.density.last_reset_before(t, 1600))));
     }
 
     #[test]

@@ -14,6 +14,7 @@ use super::adam::{Adam, Group};
 use super::checkpoint::{self, Checkpoint};
 use super::density::{self, DensityStats};
 use super::graph_loss::GraphObjective;
+use super::image_loss::ImageLossWeights;
 use super::nonkey_weights::{self, NonkeyWeights};
 use super::objective::{GraphSource, KnnMotion, build_graph, trained_graph};
 use super::params::{OptimizeParams, OptimizeSettings, Recipe};
@@ -381,6 +382,12 @@ pub fn run_timed(
         let started = Instant::now();
         let mut timer = if cpu_time { PhaseTimes::with_cpu_time() } else { PhaseTimes::default() };
         let batch = batch_frames(s.seed, step, views.len(), s.batch_frames);
+        // The track term acts on its schedule; a step that carries it may stay out of the
+        // density statistics (the release's).
+        let tracks_on = s.track.active(step, s.density.last_reset_before(step, s.steps));
+        let weights =
+            ImageLossWeights { track: if tracks_on { s.image.track } else { 0.0 }, ..s.image };
+        let carries_tracks = weights.track > 0.0 && views.has_tracks();
         // L_rgb (batch frames) and the motion or graph terms (all frames) are independent:
         // they run side by side, each into its own gradients, added in a fixed order.
         let beside = timer.start();
@@ -389,7 +396,7 @@ pub fn run_timed(
         let (img, extra) = rayon::join(
             || {
                 image_step(
-                    &renderer, state, &views, &batch, &s.image, &render, &mut grads, &mut t_img,
+                    &renderer, state, &views, &batch, &weights, &render, &mut grads, &mut t_img,
                 )
             },
             || {
@@ -434,7 +441,9 @@ pub fn run_timed(
         }
         timer.stop("Adam", adam_started);
         let density_started = timer.start();
-        c.density.add(&img.screen_grad, &img.screen_count);
+        if s.track.density_stats || !carries_tracks {
+            c.density.add(&img.screen_grad, &img.screen_count);
+        }
         if s.density.active(step, s.steps) {
             let protected: Vec<bool> =
                 c.state.ids.iter().map(|i| role.get(i) == Some(&Role::Key)).collect();
