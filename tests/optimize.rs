@@ -464,12 +464,13 @@ fn drift_seen(dir: &Dir, ids: &[u32], pairs: &[(usize, usize)]) -> (usize, usize
 /// | paper, `--anchor-metric release` | 0.149 | 22.27 | 0.104 | 22.59 | 0.101 | 22.54 |
 /// | paper, `--nonkey-metric-frame most-reliable` | 0.146 | 23.84 | 0.156 | 24.19 | 0.121 | 23.84 |
 /// | smoothness only (no anchor or graph term) | 0.089 | 23.65 | 0.063 | 24.12 | 0.083 | 23.81 |
-/// | usplat4d release | 0.247 (0.074) | 19.40 | 0.288 (0.046) | 19.40 | 0.306 (0.058) | 19.40 |
-/// | release, `--graph-init-iters 0` | 0.103 (0.074) | 23.01 | 0.065 (0.046) | 23.11 | 0.084 (0.058) | 23.05 |
+/// | usplat4d release | 0.261 (0.074) | 19.07 | 0.299 (0.046) | 19.14 | 0.326 (0.058) | 19.12 |
+/// | release, `--graph-init-iters 0` | 0.112 (0.074) | 22.63 | 0.076 (0.046) | 22.70 | 0.079 (0.058) | 22.62 |
 ///
-/// (The release rows since 782d420, whose release profile adds the batch frames' image terms;
-/// averaged, they were 0.225, 0.298 and 0.288 with 19.35, 19.29 and 19.28 dB, and without the
-/// graph initialisation 0.115, 0.075 and 0.081 with 22.98, 22.96 and 22.98 dB.)
+/// (The release rows since c1b4d92, whose release profile adds the batch frames' image terms
+/// and follows the release's track schedule; before 782d420 they were 0.225, 0.298 and 0.288
+/// with 19.35, 19.29 and 19.28 dB, and without the graph initialisation 0.115, 0.075 and
+/// 0.081 with 22.98, 22.96 and 22.98 dB.)
 ///
 /// On the random prior the drift is mostly in view: the training camera sees 131 of the 142
 /// drifted pairs in the prior (the displaced point comes out from behind its occluder) and 90
