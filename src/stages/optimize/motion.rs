@@ -194,9 +194,9 @@ const WAVE_ROWS: usize = 1 << 20;
 /// on the Gaussians `nodes` of `poses`, one block of frames at a time: each block holds its
 /// frames plus `context` frames before them (terms coupling t−Δ..t need Δ ≤ `context`); its
 /// gradients are added into `grads` (its own frames in parallel, they are disjoint, then its
-/// context frames in block order) and its values in block order. Memory is a few
-/// blocks (at least one per thread), not `[T, m]`; the block layout depends on T and m only, so the result does not
-/// depend on the number of threads.
+/// context frames in block order) and its values in block order. Memory is a few blocks (at
+/// least one per thread), not `[T, m]`; the block layout depends on T and m only, so the
+/// result does not depend on the number of threads.
 pub fn stream_frames<const K: usize>(
     poses: &Poses,
     nodes: &[u32],

@@ -299,7 +299,9 @@ impl DensitySettings {
 
     /// The latest step before `step` at which opacities were reset, 0 if none.
     pub fn last_reset_before(&self, step: u32, steps: u32) -> u32 {
-        (1..step).rev().find(|&r| self.reset(r, steps)).unwrap_or(0)
+        let Some(k) = self.opacity_reset_every.map(|k| k.max(1)) else { return 0 };
+        // resets fall on multiples of k: look at those below `step`, latest first
+        (1..step.div_ceil(k)).rev().map(|j| j * k).find(|&r| self.reset(r, steps)).unwrap_or(0)
     }
 
     /// Whether opacities are reset at `step` (inside the active window only).

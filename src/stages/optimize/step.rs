@@ -119,11 +119,6 @@ impl TrainingViews {
         self.cameras.is_empty()
     }
 
-    /// Whether the scene has 2D tracks (the track term's targets).
-    pub fn has_tracks(&self) -> bool {
-        self.tracks.is_some()
-    }
-
     /// The camera that renders training frame `t`: the model's own camera of that frame
     /// when it carries cameras, else the scene's training camera.
     pub fn training_camera(&self, t: usize) -> RenderCamera {

@@ -387,7 +387,6 @@ pub fn run_timed(
         let tracks_on = s.track.active(step, s.density.last_reset_before(step, s.steps));
         let weights =
             ImageLossWeights { track: if tracks_on { s.image.track } else { 0.0 }, ..s.image };
-        let carries_tracks = weights.track > 0.0 && views.has_tracks();
         // L_rgb (batch frames) and the motion or graph terms (all frames) are independent:
         // they run side by side, each into its own gradients, added in a fixed order.
         let beside = timer.start();
@@ -441,6 +440,7 @@ pub fn run_timed(
         }
         timer.stop("Adam", adam_started);
         let density_started = timer.start();
+        let carries_tracks = img.terms.iter().any(|(k, _)| *k == "track");
         if s.track.density_stats || !carries_tracks {
             c.density.add(&img.screen_grad, &img.screen_count);
         }
