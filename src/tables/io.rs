@@ -133,8 +133,12 @@ impl TableWriter {
             KeyValue::new(KEY_PARAMS.into(), provenance.params.to_string()),
         ];
         kv.extend(provenance.metadata.iter().map(|(k, v)| KeyValue::new(k.clone(), v.clone())));
+        // PLAIN + zstd, no dictionaries: nearly every value of a per-Gaussian table is
+        // distinct, so a dictionary only costs a hash per value before falling back (the
+        // 46,444 × 121 trajectories table: 243 MB with dictionaries, 158 MB without).
         let props = WriterProperties::builder()
             .set_compression(Compression::ZSTD(ZstdLevel::try_new(3).unwrap_or_default()))
+            .set_dictionary_enabled(false)
             .set_key_value_metadata(Some(kv))
             .set_max_row_group_row_count(None)
             .set_max_row_group_bytes(None)
