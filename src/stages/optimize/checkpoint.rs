@@ -9,9 +9,11 @@
 //! different run; a mismatching checkpoint is ignored (and replaced).
 //!
 //! Format: magic `USP4DCK1`, the 32-byte fingerprint, then little-endian fields in the order
-//! of [`Checkpoint`]; vectors are a u64 length followed by their items.
+//! of [`Checkpoint`]; vectors are a u64 length followed by their items. Both directions
+//! stream through a buffer: a checkpoint holds the poses and their two Adam moments (8 GB at
+//! T = 475, N = 200,000), which must not be copied whole beside the training state.
 
-use std::io::Write;
+use std::io::{self, BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 use super::adam::{Adam, Group};
@@ -69,92 +71,109 @@ pub fn fingerprint(settings: &serde_json::Value, inputs: &[PathBuf]) -> anyhow::
 pub fn save(path: &Path, fp: &[u8; 32], c: &Checkpoint) -> anyhow::Result<()> {
     let dir = path.parent().unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
-    let mut e = Enc(Vec::new());
-    e.0.extend_from_slice(MAGIC);
-    e.0.extend_from_slice(fp);
-    e.u32(c.step);
-    e.u32(c.next_id);
-    let s = &c.state;
-    e.u32s(&s.ids);
-    e.bytes(&s.dynamic.iter().map(|d| *d as u8).collect::<Vec<_>>());
-    e.u32s(&s.origin);
-    e.u64(s.poses.frames as u64);
-    e.f32s(s.poses.position.as_flattened());
-    e.f32s(s.poses.rotation.as_flattened());
-    e.f32s(s.log_scale.as_flattened());
-    e.f32s(&s.logit_opacity);
-    e.f32s(s.color.as_flattened());
-    e.bytes(&[s.sh_degree]);
-    e.f32s(&s.sh_rest);
-    e.u64(c.adam.t);
-    e.u64(c.adam.groups.len() as u64);
-    for g in &c.adam.groups {
-        e.bytes(g.name.as_bytes());
-        e.f32s(&[g.lr]);
-        e.f32s(&g.m);
-        e.f32s(&g.v);
-    }
-    e.f32s(&c.density.grad);
-    e.u32s(&c.density.count);
-    e.u64(c.graph.len() as u64);
-    for (name, v) in &c.graph {
-        e.bytes(name.as_bytes());
-        e.f32s(v);
-    }
-    e.u64(c.log.len() as u64);
-    for r in &c.log {
-        e.u32(r.step);
-        e.u32(r.num_gaussians);
-        e.f64(r.seconds);
-        e.f64(r.loss);
-        e.u64(r.terms.len() as u64);
-        for (k, v) in &r.terms {
-            e.bytes(k.as_bytes());
-            e.f64(*v);
-        }
-        e.u64(r.lr.len() as u64);
-        for (k, v) in &r.lr {
-            e.bytes(k.as_bytes());
-            e.f32s(&[*v]);
-        }
-    }
-    let mut tmp = tempfile::NamedTempFile::new_in(dir)
+    let tmp = tempfile::NamedTempFile::new_in(dir)
         .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
-    tmp.write_all(&e.0)
+    let mut e = Enc(BufWriter::with_capacity(BUFFER, tmp.as_file()));
+    encode(&mut e, fp, c)
+        .and_then(|_| e.0.flush())
         .and_then(|_| tmp.as_file().sync_all())
         .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    drop(e);
     tmp.persist(path).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.error))?;
+    Ok(())
+}
+
+/// Bytes of the read and write buffers.
+const BUFFER: usize = 1 << 20;
+
+/// Write `c` in the module's format.
+fn encode(e: &mut Enc<impl Write>, fp: &[u8; 32], c: &Checkpoint) -> io::Result<()> {
+    e.raw(MAGIC)?;
+    e.raw(fp)?;
+    e.u32(c.step)?;
+    e.u32(c.next_id)?;
+    let s = &c.state;
+    e.u32s(&s.ids)?;
+    e.bytes(&s.dynamic.iter().map(|d| *d as u8).collect::<Vec<_>>())?;
+    e.u32s(&s.origin)?;
+    e.u64(s.poses.frames as u64)?;
+    e.f32s(s.poses.position.as_flattened())?;
+    e.f32s(s.poses.rotation.as_flattened())?;
+    e.f32s(s.log_scale.as_flattened())?;
+    e.f32s(&s.logit_opacity)?;
+    e.f32s(s.color.as_flattened())?;
+    e.bytes(&[s.sh_degree])?;
+    e.f32s(&s.sh_rest)?;
+    e.u64(c.adam.t)?;
+    e.u64(c.adam.groups.len() as u64)?;
+    for g in &c.adam.groups {
+        e.bytes(g.name.as_bytes())?;
+        e.f32s(&[g.lr])?;
+        e.f32s(&g.m)?;
+        e.f32s(&g.v)?;
+    }
+    e.f32s(&c.density.grad)?;
+    e.u32s(&c.density.count)?;
+    e.u64(c.graph.len() as u64)?;
+    for (name, v) in &c.graph {
+        e.bytes(name.as_bytes())?;
+        e.f32s(v)?;
+    }
+    e.u64(c.log.len() as u64)?;
+    for r in &c.log {
+        e.u32(r.step)?;
+        e.u32(r.num_gaussians)?;
+        e.f64(r.seconds)?;
+        e.f64(r.loss)?;
+        e.u64(r.terms.len() as u64)?;
+        for (k, v) in &r.terms {
+            e.bytes(k.as_bytes())?;
+            e.f64(*v)?;
+        }
+        e.u64(r.lr.len() as u64)?;
+        for (k, v) in &r.lr {
+            e.bytes(k.as_bytes())?;
+            e.f32s(&[*v])?;
+        }
+    }
     Ok(())
 }
 
 /// Read the checkpoint at `path` if it exists and belongs to the run with fingerprint `fp`.
 pub fn load(path: &Path, fp: &[u8; 32]) -> anyhow::Result<Option<Checkpoint>> {
-    let bytes = match std::fs::read(path) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+    let file = match std::fs::File::open(path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
         Err(e) => anyhow::bail!("{}: {e}", path.display()),
     };
-    if bytes.len() < 40 || &bytes[..8] != MAGIC {
+    let size = file.metadata().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?.len();
+    let mut d = Dec { r: BufReader::with_capacity(BUFFER, file), left: size, error: None };
+    let mut head = [0u8; 40];
+    if d.fill(&mut head).is_none() || &head[..8] != MAGIC {
+        if let Some(e) = d.error.filter(|e| e.kind() != io::ErrorKind::UnexpectedEof) {
+            anyhow::bail!("{}: {e}", path.display());
+        }
         anyhow::bail!(
             "{}: not a usplat4d optimize checkpoint (delete it to start over)",
             path.display()
         );
     }
-    if &bytes[8..40] != fp {
+    if &head[8..40] != fp {
         return Ok(None);
     }
-    let mut d = Dec { b: &bytes, at: 40 };
-    decode(&mut d)
-        .ok_or_else(|| {
-            anyhow::anyhow!(
+    match decode(&mut d) {
+        Some(c) => Ok(Some(c)),
+        None => match d.error.filter(|e| e.kind() != io::ErrorKind::UnexpectedEof) {
+            Some(e) => anyhow::bail!("{}: {e}", path.display()),
+            None => anyhow::bail!(
                 "{}: truncated or corrupt checkpoint (delete it to start over)",
                 path.display()
-            )
-        })
-        .map(Some)
+            ),
+        },
+    }
 }
 
-fn decode(d: &mut Dec) -> Option<Checkpoint> {
+fn decode(d: &mut Dec<impl Read>) -> Option<Checkpoint> {
     let step = d.u32()?;
     let next_id = d.u32()?;
     let ids = d.u32s()?;
@@ -212,7 +231,7 @@ fn decode(d: &mut Dec) -> Option<Checkpoint> {
         }
         log.push(r);
     }
-    (d.at == d.b.len()).then_some(Checkpoint {
+    (d.left == 0).then_some(Checkpoint {
         step,
         next_id,
         state,
@@ -223,82 +242,128 @@ fn decode(d: &mut Dec) -> Option<Checkpoint> {
     })
 }
 
-struct Enc(Vec<u8>);
+/// Little-endian writer of the format's fields.
+struct Enc<W: Write>(W);
 
-impl Enc {
-    fn u32(&mut self, v: u32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
+impl<W: Write> Enc<W> {
+    fn raw(&mut self, v: &[u8]) -> io::Result<()> {
+        self.0.write_all(v)
     }
-    fn u64(&mut self, v: u64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
+    fn u32(&mut self, v: u32) -> io::Result<()> {
+        self.raw(&v.to_le_bytes())
     }
-    fn f64(&mut self, v: f64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
+    fn u64(&mut self, v: u64) -> io::Result<()> {
+        self.raw(&v.to_le_bytes())
     }
-    fn bytes(&mut self, v: &[u8]) {
-        self.u64(v.len() as u64);
-        self.0.extend_from_slice(v);
+    fn f64(&mut self, v: f64) -> io::Result<()> {
+        self.raw(&v.to_le_bytes())
     }
-    fn u32s(&mut self, v: &[u32]) {
-        self.u64(v.len() as u64);
-        v.iter().for_each(|x| self.0.extend_from_slice(&x.to_le_bytes()));
+    fn bytes(&mut self, v: &[u8]) -> io::Result<()> {
+        self.u64(v.len() as u64)?;
+        self.raw(v)
     }
-    fn f32s(&mut self, v: &[f32]) {
-        self.u64(v.len() as u64);
-        v.iter().for_each(|x| self.0.extend_from_slice(&x.to_le_bytes()));
+    fn u32s(&mut self, v: &[u32]) -> io::Result<()> {
+        self.words(v, |x| x.to_le_bytes())
+    }
+    fn f32s(&mut self, v: &[f32]) -> io::Result<()> {
+        self.words(v, |x| x.to_le_bytes())
+    }
+    /// The length, then the items' 4-byte encodings, a block at a time.
+    fn words<T: Copy>(&mut self, v: &[T], le: impl Fn(T) -> [u8; 4]) -> io::Result<()> {
+        self.u64(v.len() as u64)?;
+        let mut block = [0u8; 4 * WORDS];
+        for items in v.chunks(WORDS) {
+            for (b, &x) in block.chunks_exact_mut(4).zip(items) {
+                b.copy_from_slice(&le(x));
+            }
+            self.raw(&block[..4 * items.len()])?;
+        }
+        Ok(())
     }
 }
 
-struct Dec<'a> {
-    b: &'a [u8],
-    at: usize,
+/// Items per block of [`Enc::words`] and [`Dec::words`].
+const WORDS: usize = 1024;
+
+/// Reader of the format's fields: `None` once the input ends early or a length exceeds
+/// the `left` bytes of the file (so a corrupt length allocates nothing), with the read
+/// error kept in `error`.
+struct Dec<R: Read> {
+    r: R,
+    left: u64,
+    error: Option<io::Error>,
 }
 
-impl Dec<'_> {
-    fn take(&mut self, n: usize) -> Option<&[u8]> {
-        let end = self.at.checked_add(n)?;
-        let s = self.b.get(self.at..end)?;
-        self.at = end;
-        Some(s)
+impl<R: Read> Dec<R> {
+    fn fill(&mut self, buf: &mut [u8]) -> Option<()> {
+        let n = buf.len() as u64;
+        if n > self.left {
+            return None;
+        }
+        if let Err(e) = self.r.read_exact(buf) {
+            self.error = Some(e);
+            return None;
+        }
+        self.left -= n;
+        Some(())
+    }
+    fn array<const B: usize>(&mut self) -> Option<[u8; B]> {
+        let mut b = [0u8; B];
+        self.fill(&mut b)?;
+        Some(b)
     }
     fn u32(&mut self) -> Option<u32> {
-        Some(u32::from_le_bytes(self.take(4)?.try_into().ok()?))
+        self.array().map(u32::from_le_bytes)
     }
     fn u64(&mut self) -> Option<u64> {
-        Some(u64::from_le_bytes(self.take(8)?.try_into().ok()?))
+        self.array().map(u64::from_le_bytes)
     }
     fn f64(&mut self) -> Option<f64> {
-        Some(f64::from_le_bytes(self.take(8)?.try_into().ok()?))
+        self.array().map(f64::from_le_bytes)
     }
     fn len(&mut self, item: usize) -> Option<usize> {
         let n = usize::try_from(self.u64()?).ok()?;
-        (n.checked_mul(item)? <= self.b.len() - self.at).then_some(n)
+        (n.checked_mul(item)? as u64 <= self.left).then_some(n)
     }
     fn bytes(&mut self) -> Option<Vec<u8>> {
-        let n = self.len(1)?;
-        Some(self.take(n)?.to_vec())
+        let mut v = vec![0u8; self.len(1)?];
+        self.fill(&mut v)?;
+        Some(v)
+    }
+    /// A length, then that many 4-byte items decoded by `from`, a block at a time.
+    fn words<T>(&mut self, from: impl Fn([u8; 4]) -> T) -> Option<Vec<T>> {
+        let n = self.len(4)?;
+        let mut out = Vec::with_capacity(n);
+        let mut block = [0u8; 4 * WORDS];
+        while out.len() < n {
+            let k = (n - out.len()).min(WORDS);
+            self.fill(&mut block[..4 * k])?;
+            out.extend(block[..4 * k].chunks_exact(4).map(|c| from(c.try_into().unwrap())));
+        }
+        Some(out)
     }
     fn u32s(&mut self) -> Option<Vec<u32>> {
-        let n = self.len(4)?;
-        Some(
-            self.take(4 * n)?
-                .chunks_exact(4)
-                .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
-                .collect(),
-        )
+        self.words(u32::from_le_bytes)
     }
     fn f32s(&mut self) -> Option<Vec<f32>> {
-        let n = self.len(4)?;
-        Some(
-            self.take(4 * n)?
-                .chunks_exact(4)
-                .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-                .collect(),
-        )
+        self.words(f32::from_le_bytes)
     }
+    /// [`Self::f32s`] as `K`-arrays, read straight into them.
     fn arrays<const K: usize>(&mut self) -> Option<Vec<[f32; K]>> {
-        let v = self.f32s()?;
-        (v.len() % K == 0).then(|| v.chunks_exact(K).map(|c| c.try_into().unwrap()).collect())
+        let n = self.len(4)?;
+        if n % K != 0 {
+            return None;
+        }
+        let mut out = Vec::with_capacity(n / K);
+        let mut block = [0u8; 4 * WORDS];
+        while out.len() < n / K {
+            let k = (n / K - out.len()).min(WORDS / K);
+            self.fill(&mut block[..4 * K * k])?;
+            out.extend(block[..4 * K * k].chunks_exact(4 * K).map(|c| {
+                std::array::from_fn(|j| f32::from_le_bytes(c[4 * j..4 * j + 4].try_into().unwrap()))
+            }));
+        }
+        Some(out)
     }
 }
 
@@ -344,5 +409,10 @@ mod tests {
         std::fs::write(&path, &bytes[..bytes.len() - 3]).unwrap();
         let e = load(&path, &[1; 32]).unwrap_err().to_string();
         assert!(e.contains("truncated or corrupt checkpoint"), "{e}");
+        for bad in [&b"USP4D"[..], &[7u8; 64][..]] {
+            std::fs::write(&path, bad).unwrap();
+            let e = load(&path, &[1; 32]).unwrap_err().to_string();
+            assert!(e.contains("not a usplat4d optimize checkpoint"), "{e}");
+        }
     }
 }
