@@ -570,6 +570,15 @@ impl GraphObjective {
         out
     }
 
+    /// Drop the `[T, N]` anchors and u and the step buffers, which an objective about to be
+    /// replaced no longer needs ([`Self::carry_over`] reads only its graph and trainable
+    /// tensors), so that they are not held beside its replacement's.
+    pub fn release_frames(&mut self) {
+        self.p0 = Vec::new();
+        self.u = Vec::new();
+        self.scratch = Default::default();
+    }
+
     /// Take over the trained tensors of `old` (the objective before a density pass): the
     /// key-key rest lengths by (source, destination) id, θ by key id, and each non-key's
     /// source pose, Δw, pose offsets and table weights (the base of θ and Δw, not the

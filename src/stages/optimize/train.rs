@@ -460,8 +460,12 @@ pub fn run_timed(
             );
             tracing::info!(step, ?r, n = c.state.n(), "density control");
             c.density = DensityStats::new(c.state.n());
-            let learned = match &objective {
-                Objective::Graph(o) => Some(o.learned_edges()),
+            let learned = match &mut objective {
+                Objective::Graph(o) => {
+                    let learned = o.learned_edges();
+                    o.release_frames();
+                    Some(learned)
+                }
                 Objective::Knn(_) => None,
             };
             let mut rebuilt = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
