@@ -148,28 +148,24 @@ pub fn load(path: &Path, fp: &[u8; 32]) -> anyhow::Result<Option<Checkpoint>> {
     };
     let size = file.metadata().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?.len();
     let mut d = Dec { r: BufReader::with_capacity(BUFFER, file), left: size, error: None };
+    // A read error other than the end of the file names itself; else the file is at fault.
+    let fail = |d: Dec<_>, what: &str| match d
+        .error
+        .filter(|e| e.kind() != io::ErrorKind::UnexpectedEof)
+    {
+        Some(e) => anyhow::anyhow!("{}: {e}", path.display()),
+        None => anyhow::anyhow!("{}: {what} (delete it to start over)", path.display()),
+    };
     let mut head = [0u8; 40];
     if d.fill(&mut head).is_none() || &head[..8] != MAGIC {
-        if let Some(e) = d.error.filter(|e| e.kind() != io::ErrorKind::UnexpectedEof) {
-            anyhow::bail!("{}: {e}", path.display());
-        }
-        anyhow::bail!(
-            "{}: not a usplat4d optimize checkpoint (delete it to start over)",
-            path.display()
-        );
+        return Err(fail(d, "not a usplat4d optimize checkpoint"));
     }
     if &head[8..40] != fp {
         return Ok(None);
     }
     match decode(&mut d) {
         Some(c) => Ok(Some(c)),
-        None => match d.error.filter(|e| e.kind() != io::ErrorKind::UnexpectedEof) {
-            Some(e) => anyhow::bail!("{}: {e}", path.display()),
-            None => anyhow::bail!(
-                "{}: truncated or corrupt checkpoint (delete it to start over)",
-                path.display()
-            ),
-        },
+        None => Err(fail(d, "truncated or corrupt checkpoint")),
     }
 }
 
@@ -330,23 +326,26 @@ impl<R: Read> Dec<R> {
         self.fill(&mut v)?;
         Some(v)
     }
-    /// A length, then that many 4-byte items decoded by `from`, a block at a time.
-    fn words<T>(&mut self, from: impl Fn([u8; 4]) -> T) -> Option<Vec<T>> {
-        let n = self.len(4)?;
-        let mut out = Vec::with_capacity(n);
+    /// `count` items of `size` bytes each, decoded by `from`, a block of about
+    /// [`WORDS`] words at a time.
+    fn items<T>(&mut self, count: usize, size: usize, from: impl Fn(&[u8]) -> T) -> Option<Vec<T>> {
+        let mut out = Vec::with_capacity(count);
         let mut block = [0u8; 4 * WORDS];
-        while out.len() < n {
-            let k = (n - out.len()).min(WORDS);
-            self.fill(&mut block[..4 * k])?;
-            out.extend(block[..4 * k].chunks_exact(4).map(|c| from(c.try_into().unwrap())));
+        let per_block = (block.len() / size).max(1);
+        while out.len() < count {
+            let k = (count - out.len()).min(per_block);
+            self.fill(&mut block[..size * k])?;
+            out.extend(block[..size * k].chunks_exact(size).map(&from));
         }
         Some(out)
     }
     fn u32s(&mut self) -> Option<Vec<u32>> {
-        self.words(u32::from_le_bytes)
+        let n = self.len(4)?;
+        self.items(n, 4, |c| u32::from_le_bytes(c.try_into().unwrap()))
     }
     fn f32s(&mut self) -> Option<Vec<f32>> {
-        self.words(f32::from_le_bytes)
+        let n = self.len(4)?;
+        self.items(n, 4, le_f32)
     }
     /// [`Self::f32s`] as `K`-arrays, read straight into them.
     fn arrays<const K: usize>(&mut self) -> Option<Vec<[f32; K]>> {
@@ -354,17 +353,13 @@ impl<R: Read> Dec<R> {
         if n % K != 0 {
             return None;
         }
-        let mut out = Vec::with_capacity(n / K);
-        let mut block = [0u8; 4 * WORDS];
-        while out.len() < n / K {
-            let k = (n / K - out.len()).min(WORDS / K);
-            self.fill(&mut block[..4 * K * k])?;
-            out.extend(block[..4 * K * k].chunks_exact(4 * K).map(|c| {
-                std::array::from_fn(|j| f32::from_le_bytes(c[4 * j..4 * j + 4].try_into().unwrap()))
-            }));
-        }
-        Some(out)
+        self.items(n / K, 4 * K, |c| std::array::from_fn(|j| le_f32(&c[4 * j..4 * j + 4])))
     }
+}
+
+/// The f32 of 4 little-endian bytes.
+fn le_f32(c: &[u8]) -> f32 {
+    f32::from_le_bytes(c.try_into().unwrap())
 }
 
 #[cfg(test)]
