@@ -11,7 +11,7 @@
 
 use super::adam::Adam;
 use super::params::DensitySettings;
-use super::state::{TrainState, logit, sigmoid};
+use super::state::{TrainState, gather_frames, logit, sigmoid};
 use crate::util::rng::{Rng, mix};
 
 /// Split children's scale factor (3DGS).
@@ -115,58 +115,33 @@ pub fn densify_and_prune(
         ids.push(*next_id);
         *next_id += 1;
     }
-    let mut next = state.gather(&rows, ids);
+    state.gather(&rows, ids);
     // Split children: sampled from the parent's Gaussian (ε ~ N(0, I) in its local frame,
     // the same for every frame so the child moves rigidly with the parent), shrunk.
     let mut rng = Rng::new(mix(seed ^ mix(step as u64 ^ 0x5eed_0000_0000)));
-    let (n2, nt) = (next.n(), next.frames());
+    let (n2, nt) = (state.n(), state.frames());
     let first_child = keep.len() + clones.len();
     for j in first_child..n2 {
-        let s3 = next.log_scale[j].map(f32::exp);
+        let s3 = state.log_scale[j].map(f32::exp);
         let e = [rng.normal() as f32, rng.normal() as f32, rng.normal() as f32];
         let local = [s3[0] * e[0], s3[1] * e[1], s3[2] * e[2]];
         for t in 0..nt {
-            let q = super::state::normalized(next.poses.rotation[t * n2 + j]);
+            let q = super::state::normalized(state.poses.rotation[t * n2 + j]);
             let d = rotate(q, local);
             for k in 0..3 {
-                next.poses.position[t * n2 + j][k] += d[k];
+                state.poses.position[t * n2 + j][k] += d[k];
             }
         }
-        for v in next.log_scale[j].iter_mut() {
+        for v in state.log_scale[j].iter_mut() {
             *v -= SPLIT_SHRINK.ln();
         }
     }
     // Adam moments follow their Gaussians; new ones start at zero.
     for (g, &(frames, stride)) in adam.groups.iter_mut().zip(&layouts) {
-        g.m = gather_moments(&g.m, frames, n, stride, &rows, keep.len());
-        g.v = gather_moments(&g.v, frames, n, stride, &rows, keep.len());
+        gather_frames(&mut g.m, frames, n, stride, &rows, keep.len());
+        gather_frames(&mut g.v, frames, n, stride, &rows, keep.len());
     }
-    *state = next;
     report
-}
-
-/// Moments of rows `rows` from a `[frames, n, stride]` tensor; rows at positions ≥
-/// `first_new` are new Gaussians (zeros).
-fn gather_moments(
-    m: &[f32],
-    frames: usize,
-    n: usize,
-    stride: usize,
-    rows: &[usize],
-    first_new: usize,
-) -> Vec<f32> {
-    let mut out = Vec::with_capacity(frames * rows.len() * stride);
-    for t in 0..frames {
-        for (j, &i) in rows.iter().enumerate() {
-            if j < first_new {
-                let at = (t * n + i) * stride;
-                out.extend_from_slice(&m[at..at + stride]);
-            } else {
-                out.extend(std::iter::repeat_n(0.0, stride));
-            }
-        }
-    }
-    out
 }
 
 /// Reset opacities to at most 0.01 and clear the opacity group's moments (3DGS).

@@ -250,10 +250,11 @@ pub struct GraphObjective {
     rot: Vec<M3>,
 }
 
-/// Inputs of [`GraphObjective::new`], all in pose index order.
+/// Inputs of [`GraphObjective::new`], all in pose index order. The `[T, N]` arrays are
+/// owned, so that the objective keeps p° and u as given instead of copying them.
 pub struct GraphInputs<'a> {
     /// p° and q°: the poses before optimisation `[T, N]`.
-    pub initial: &'a Poses,
+    pub initial: Poses,
     /// gaussian_id of each pose index `[N]`.
     pub ids: &'a [u32],
     /// Key pose indices `[K]`.
@@ -271,7 +272,7 @@ pub struct GraphInputs<'a> {
     /// over its `nonkey-distance-unit`²); unused by [`NonkeyWeights::Table`].
     pub nonkey_lambda: f64,
     /// u_{t,i} `[T, N]`.
-    pub u: &'a [f32],
+    pub u: Vec<f32>,
     /// World-to-camera rotation R_cw of each frame's training camera `[T]`.
     pub rot_cw: &'a [DMat3],
 }
@@ -288,7 +289,7 @@ pub struct GraphTables<'a> {
 
 impl GraphObjective {
     /// Build from plain arrays. Errors name the inconsistent input.
-    pub fn new(inp: &GraphInputs, s: GraphSettings) -> Result<Self, String> {
+    pub fn new(inp: GraphInputs, s: GraphSettings) -> Result<Self, String> {
         let (t, n) = (inp.initial.frames, inp.initial.n);
         inp.initial.check()?;
         if inp.ids.len() != n || inp.u.len() != t * n || inp.rot_cw.len() != t {
@@ -315,7 +316,7 @@ impl GraphObjective {
             ksrc.push(ca);
             kdst.push(cb);
             w_raw.push(w);
-            let d = |f: usize| distance(inp.initial, f, a, b);
+            let d = |f: usize| distance(&inp.initial, f, a, b);
             rest.push(match s.motion {
                 MotionForm::Paper => d(cf) as f32,
                 MotionForm::Release => ((0..t).map(d).sum::<f64>() / t.max(1) as f64) as f32,
@@ -334,7 +335,7 @@ impl GraphObjective {
                 nk_key.push(compact(k)?);
                 nk_w.push(if sum > 0.0 { w as f64 / sum } else { 1.0 / list.len() as f64 });
                 nk_src.push((inp.keys.len() + v) as u32);
-                nk_rest.push(distance(inp.initial, cf, inp.nonkeys[u], k));
+                nk_rest.push(distance(&inp.initial, cf, inp.nonkeys[u], k));
             }
             nk_off.push(nk_key.len());
             let th = inp.t_hat[u] as usize;
@@ -397,8 +398,8 @@ impl GraphObjective {
             nk_w_eff: vec![0.0; n_edges],
             scratch: DqbScratch::default(),
             metric_frame,
-            p0: inp.initial.position.clone(),
-            u: inp.u.to_vec(),
+            p0: inp.initial.position,
+            u: inp.u,
             rot: inp
                 .rot_cw
                 .iter()
@@ -409,7 +410,9 @@ impl GraphObjective {
                 .collect(),
             s,
         };
-        obj.blend_weights_of(&inp.initial.position);
+        let p0 = std::mem::take(&mut obj.p0);
+        obj.blend_weights_of(&p0);
+        obj.p0 = p0;
         Ok(obj)
     }
 
@@ -418,10 +421,10 @@ impl GraphObjective {
     /// the training cameras' R_cw `[T]`. Gaussians of the tables that are not in `ids` are
     /// an error; `unlinked`/`culled` roles get no graph terms.
     pub fn from_tables(
-        initial: &Poses,
+        initial: Poses,
         ids: &[u32],
         tables: GraphTables,
-        u: &[f32],
+        u: Vec<f32>,
         rot_cw: &[DMat3],
         s: GraphSettings,
     ) -> Result<Self, String> {
@@ -474,7 +477,7 @@ impl GraphObjective {
             rot_cw,
             nonkey_lambda,
         };
-        Self::new(&inp, s)
+        Self::new(inp, s)
     }
 
     /// The settings.
@@ -1040,18 +1043,18 @@ mod tests {
             .collect();
         let ids: Vec<u32> = (100..100 + n as u32).collect();
         let inp = GraphInputs {
-            initial: &p0,
+            initial: p0.clone(),
             ids: &ids,
             keys: &keys,
             nonkeys: &nonkeys,
             t_hat: &t_hat.map(|t| t as u32),
             nonkey_edges: &nonkey_edges,
             key_edges: &key_edges,
-            u: &u,
+            u,
             rot_cw: &rot,
             nonkey_lambda: 1.0,
         };
-        let obj = GraphObjective::new(&inp, s).unwrap();
+        let obj = GraphObjective::new(inp, s).unwrap();
         // Move the poses away from p° (and the raw weights off uniform) so no term is at a kink.
         let mut poses = p0.clone();
         for k in 0..t * n {
@@ -1258,18 +1261,18 @@ mod tests {
                 .map(|(a, b)| (keys[a], keys[b], 1.0))
                 .collect();
             let inp = GraphInputs {
-                initial: &p0,
+                initial: p0.clone(),
                 ids: &ids,
                 keys: &keys,
                 nonkeys: &nonkeys,
                 t_hat: &t_hat,
                 nonkey_edges: &nonkey_edges,
                 key_edges: &key_edges,
-                u: &u,
+                u: u.clone(),
                 rot_cw: &rot,
                 nonkey_lambda: 100.0,
             };
-            let mut obj = GraphObjective::new(&inp, GraphSettings::defaults(profile)).unwrap();
+            let mut obj = GraphObjective::new(inp, GraphSettings::defaults(profile)).unwrap();
             let mut g = PoseGrads::zeros(t, n);
             let frames = [3, 17, 30, 44, 58, 71, 90, 111];
             let start = std::time::Instant::now();

@@ -220,7 +220,7 @@ pub fn build_graph(
         edges: &edges,
         nonkey_lambda: src.nonkey_lambda.unwrap_or(f64::NAN),
     };
-    GraphObjective::from_tables(&initial, &state.ids, tables, &u, &src.rot_cw, settings.clone())
+    GraphObjective::from_tables(initial, &state.ids, tables, u, &src.rot_cw, settings.clone())
         .map_err(|e| anyhow::anyhow!("graph objective: {e}"))
 }
 

@@ -193,30 +193,66 @@ impl TrainState {
         }
     }
 
-    /// A new state made of rows `rows` (indices into this state, repeats allowed), the
-    /// Gaussian at position j taking id `ids[j]`: pruning and densification.
-    pub fn gather(&self, rows: &[usize], ids: Vec<u32>) -> TrainState {
+    /// Keep rows `rows` (indices into this state, repeats allowed), the Gaussian at
+    /// position j taking id `ids[j]`: pruning and densification. The poses are rearranged
+    /// in place ([`gather_frames`]).
+    pub fn gather(&mut self, rows: &[usize], ids: Vec<u32>) {
         let (n, nt) = (self.n(), self.frames());
         let k3 = self.sh_rest.len() / n.max(1);
-        let mut poses = Poses::with_capacity(nt, rows.len());
-        for t in 0..nt {
-            poses.position.extend(rows.iter().map(|&i| self.poses.position[t * n + i]));
-            poses.rotation.extend(rows.iter().map(|&i| self.poses.rotation[t * n + i]));
+        let all = rows.len();
+        gather_frames(&mut self.poses.position, nt, n, 1, rows, all);
+        gather_frames(&mut self.poses.rotation, nt, n, 1, rows, all);
+        self.poses.n = all;
+        self.ids = ids;
+        self.dynamic = rows.iter().map(|&i| self.dynamic[i]).collect();
+        self.origin = rows.iter().map(|&i| self.origin[i]).collect();
+        self.log_scale = rows.iter().map(|&i| self.log_scale[i]).collect();
+        self.logit_opacity = rows.iter().map(|&i| self.logit_opacity[i]).collect();
+        self.color = rows.iter().map(|&i| self.color[i]).collect();
+        self.sh_rest =
+            rows.iter().flat_map(|&i| self.sh_rest[i * k3..(i + 1) * k3].iter().copied()).collect();
+    }
+}
+
+/// Replace the `[frames, n, stride]` tensor `v` by its rows `rows` (indices below n,
+/// repeats allowed), `[frames, rows.len(), stride]`, rows at positions ≥ `first_new` being
+/// zero (`T::default()`). In place, a frame at a time through one frame's copy, so that a
+/// density pass at T = 475, N = 200,000 does not hold the whole state twice: a growing
+/// tensor is moved from its last frame down (frame t's new place starts at or after its
+/// old one), a shrinking one from its first frame up.
+pub fn gather_frames<T: Copy + Default>(
+    v: &mut Vec<T>,
+    frames: usize,
+    n: usize,
+    stride: usize,
+    rows: &[usize],
+    first_new: usize,
+) {
+    let (old, new) = (n * stride, rows.len() * stride);
+    assert_eq!(v.len(), frames * old, "gather_frames: tensor size");
+    if new > old {
+        v.reserve_exact(frames * (new - old));
+        v.resize(frames * new, T::default());
+    }
+    let mut frame = Vec::with_capacity(old);
+    let mut place = |v: &mut Vec<T>, t: usize| {
+        frame.clear();
+        frame.extend_from_slice(&v[t * old..(t + 1) * old]);
+        let out = &mut v[t * new..(t + 1) * new];
+        for (j, (dst, &i)) in out.chunks_exact_mut(stride.max(1)).zip(rows).enumerate() {
+            if j < first_new {
+                dst.copy_from_slice(&frame[i * stride..(i + 1) * stride]);
+            } else {
+                dst.fill(T::default());
+            }
         }
-        TrainState {
-            ids,
-            dynamic: rows.iter().map(|&i| self.dynamic[i]).collect(),
-            origin: rows.iter().map(|&i| self.origin[i]).collect(),
-            poses,
-            log_scale: rows.iter().map(|&i| self.log_scale[i]).collect(),
-            logit_opacity: rows.iter().map(|&i| self.logit_opacity[i]).collect(),
-            color: rows.iter().map(|&i| self.color[i]).collect(),
-            sh_degree: self.sh_degree,
-            sh_rest: rows
-                .iter()
-                .flat_map(|&i| self.sh_rest[i * k3..(i + 1) * k3].iter().copied())
-                .collect(),
-        }
+    };
+    if new > old {
+        (0..frames).rev().for_each(|t| place(v, t));
+    } else {
+        (0..frames).for_each(|t| place(v, t));
+        v.truncate(frames * new);
+        v.shrink_to_fit();
     }
 }
 
@@ -260,8 +296,39 @@ mod tests {
         };
         s.tie_static(&mut pg);
         assert_eq!(pg.position, vec![[1.0; 3], [6.0; 3], [3.0; 3], [6.0; 3]]);
-        let d = s.gather(&[1, 0, 0], vec![7, 5, 8]);
+        let mut d = s.clone();
+        d.gather(&[1, 0, 0], vec![7, 5, 8]);
         assert_eq!(d.positions(1), &[[1.0; 3], [0.5; 3], [0.5; 3]]);
         assert_eq!(d.dynamic, vec![false, true, true]);
+    }
+
+    /// In-place gathering equals building the tensor anew, growing and shrinking, with
+    /// repeats and zero rows.
+    #[test]
+    fn gather_frames_equals_a_fresh_gather() {
+        let (frames, n, stride) = (5, 7, 3);
+        let src: Vec<f32> = (0..frames * n * stride).map(|x| x as f32).collect();
+        for (rows, first_new) in [
+            (vec![0, 2, 3, 6, 6, 1, 4, 4, 5, 0], 8),
+            (vec![6, 1, 3], 3),
+            (vec![0, 1, 2, 3, 4, 5, 6], 7),
+            (vec![2, 5, 5, 1], 2),
+            (vec![], 0),
+        ] {
+            let mut fresh = Vec::new();
+            for t in 0..frames {
+                for (j, &i) in rows.iter().enumerate() {
+                    let at = (t * n + i) * stride;
+                    if j < first_new {
+                        fresh.extend_from_slice(&src[at..at + stride]);
+                    } else {
+                        fresh.extend([0.0; 3]);
+                    }
+                }
+            }
+            let mut v = src.clone();
+            gather_frames(&mut v, frames, n, stride, &rows, first_new);
+            assert_eq!(v, fresh, "rows {rows:?}");
+        }
     }
 }

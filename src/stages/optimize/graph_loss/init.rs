@@ -319,18 +319,18 @@ mod tests {
         let rot = vec![DMat3::IDENTITY; t];
         let ids: Vec<u32> = (0..n as u32).collect();
         let inp = GraphInputs {
-            initial: &prior,
+            initial: prior.clone(),
             ids: &ids,
             keys: &keys,
             nonkeys: &[3, 4, 5, 6],
             t_hat: &[0, 2, 8, 4],
             nonkey_edges: &nonkey_edges,
             key_edges: &key_edges,
-            u: &u,
+            u,
             rot_cw: &rot,
             nonkey_lambda: 1.0,
         };
-        (GraphObjective::new(&inp, s).unwrap(), prior, truth)
+        (GraphObjective::new(inp, s).unwrap(), prior, truth)
     }
 
     fn max_error(a: &Poses, b: &Poses) -> f64 {
