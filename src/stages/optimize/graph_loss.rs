@@ -250,11 +250,38 @@ pub struct GraphObjective {
     rot: Vec<M3>,
 }
 
-/// Inputs of [`GraphObjective::new`], all in pose index order. The `[T, N]` arrays are
-/// owned, so that the objective keeps p° and u as given instead of copying them.
+/// What the graph terms hold on to from before optimisation, in pose index order. Owned,
+/// so that the objective keeps p° and u as given instead of copying them; of q° only what
+/// DQB reads, so that no `[T, N]` rotations are held for it.
+pub struct Anchors {
+    /// T, the number of frames.
+    pub frames: usize,
+    /// p°: the positions before optimisation `[T, N]`.
+    pub p0: Vec<[f32; 3]>,
+    /// u_{t,i} `[T, N]`.
+    pub u: Vec<f32>,
+    /// q° of each pose at its most reliable frame t̂ `[N]`, read for the non-keys (their DQB
+    /// source rotation).
+    pub q_hat: Vec<[f32; 4]>,
+}
+
+#[cfg(test)]
+impl Anchors {
+    /// The anchors of `poses` with u `u`, q° at t̂ for the non-keys `nonkeys` with their t̂
+    /// `t_hat` (the identity for the other poses).
+    pub(crate) fn of_poses(poses: &Poses, u: Vec<f32>, nonkeys: &[u32], t_hat: &[u32]) -> Self {
+        let mut q_hat = vec![[1.0, 0.0, 0.0, 0.0]; poses.n];
+        for (&i, &t) in nonkeys.iter().zip(t_hat) {
+            q_hat[i as usize] = poses.q(t as usize, i as usize);
+        }
+        Anchors { frames: poses.frames, p0: poses.position.clone(), u, q_hat }
+    }
+}
+
+/// Inputs of [`GraphObjective::new`], all in pose index order.
 pub struct GraphInputs<'a> {
-    /// p° and q°: the poses before optimisation `[T, N]`.
-    pub initial: Poses,
+    /// p°, u and q° at t̂.
+    pub anchors: Anchors,
     /// gaussian_id of each pose index `[N]`.
     pub ids: &'a [u32],
     /// Key pose indices `[K]`.
@@ -271,8 +298,6 @@ pub struct GraphInputs<'a> {
     /// λ / unit² of [`NonkeyWeights::Current`] (the edges table's `nonkey-weight-sharpness`
     /// over its `nonkey-distance-unit`²); unused by [`NonkeyWeights::Table`].
     pub nonkey_lambda: f64,
-    /// u_{t,i} `[T, N]`.
-    pub u: Vec<f32>,
     /// World-to-camera rotation R_cw of each frame's training camera `[T]`.
     pub rot_cw: &'a [DMat3],
 }
@@ -290,13 +315,14 @@ pub struct GraphTables<'a> {
 impl GraphObjective {
     /// Build from plain arrays. Errors name the inconsistent input.
     pub fn new(inp: GraphInputs, s: GraphSettings) -> Result<Self, String> {
-        let (t, n) = (inp.initial.frames, inp.initial.n);
-        inp.initial.check()?;
-        if inp.ids.len() != n || inp.u.len() != t * n || inp.rot_cw.len() != t {
+        let Anchors { frames: t, p0, u, q_hat } = inp.anchors;
+        let n = inp.ids.len();
+        if p0.len() != t * n || u.len() != t * n || q_hat.len() != n || inp.rot_cw.len() != t {
             return Err(format!(
-                "graph objective: {} ids, {} u, {} rotations for N = {n}, T = {t}",
-                inp.ids.len(),
-                inp.u.len(),
+                "graph objective: {} p°, {} u, {} q° at t̂, {} rotations for N = {n}, T = {t}",
+                p0.len(),
+                u.len(),
+                q_hat.len(),
                 inp.rot_cw.len()
             ));
         }
@@ -316,7 +342,7 @@ impl GraphObjective {
             ksrc.push(ca);
             kdst.push(cb);
             w_raw.push(w);
-            let d = |f: usize| distance(&inp.initial, f, a, b);
+            let d = |f: usize| distance(&p0[f * n..(f + 1) * n], a, b);
             rest.push(match s.motion {
                 MotionForm::Paper => d(cf) as f32,
                 MotionForm::Release => ((0..t).map(d).sum::<f64>() / t.max(1) as f64) as f32,
@@ -335,15 +361,15 @@ impl GraphObjective {
                 nk_key.push(compact(k)?);
                 nk_w.push(if sum > 0.0 { w as f64 / sum } else { 1.0 / list.len() as f64 });
                 nk_src.push((inp.keys.len() + v) as u32);
-                nk_rest.push(distance(&inp.initial, cf, inp.nonkeys[u], k));
+                nk_rest.push(distance(&p0[cf * n..(cf + 1) * n], inp.nonkeys[u], k));
             }
             nk_off.push(nk_key.len());
             let th = inp.t_hat[u] as usize;
             if th >= t {
                 return Err(format!("non-key {u}: t_hat {th} out of range (T = {t})"));
             }
-            src_p.extend(inp.initial.p(th, inp.nonkeys[u] as usize));
-            src_q.extend(inp.initial.q(th, inp.nonkeys[u] as usize));
+            src_p.extend(p0[th * n + inp.nonkeys[u] as usize]);
+            src_q.extend(q_hat[inp.nonkeys[u] as usize]);
         }
         let ne = ksrc.len();
         let lambda = inp.nonkey_lambda;
@@ -398,8 +424,8 @@ impl GraphObjective {
             nk_w_eff: vec![0.0; n_edges],
             scratch: DqbScratch::default(),
             metric_frame,
-            p0: inp.initial.position,
-            u: inp.u,
+            p0,
+            u,
             rot: inp
                 .rot_cw
                 .iter()
@@ -416,15 +442,14 @@ impl GraphObjective {
         Ok(obj)
     }
 
-    /// Build from the tables: `initial` poses and their `ids` (pose index order), the
-    /// key-node and edges tables, u `[T, N]` in pose order (φ where unmeasured) and
-    /// the training cameras' R_cw `[T]`. Gaussians of the tables that are not in `ids` are
+    /// Build from the tables: the [`Anchors`] (u φ where unmeasured) of the Gaussians
+    /// `ids` (pose index order), the key-node and edges tables and the training cameras'
+    /// R_cw `[T]`. Gaussians of the tables that are not in `ids` are
     /// an error; `unlinked`/`culled` roles get no graph terms.
     pub fn from_tables(
-        initial: Poses,
+        anchors: Anchors,
         ids: &[u32],
         tables: GraphTables,
-        u: Vec<f32>,
         rot_cw: &[DMat3],
         s: GraphSettings,
     ) -> Result<Self, String> {
@@ -466,14 +491,13 @@ impl GraphObjective {
         }
         key_edges.sort_by_key(|e| e.0);
         let inp = GraphInputs {
-            initial,
+            anchors,
             ids,
             keys: &keys,
             nonkeys: &nonkeys,
             t_hat: &t_hat,
             nonkey_edges: &nonkey_edges,
             key_edges: &key_edges,
-            u,
             rot_cw,
             nonkey_lambda,
         };
@@ -573,13 +597,12 @@ impl GraphObjective {
         out
     }
 
-    /// Drop the `[T, N]` anchors and u and the step buffers, which an objective about to be
-    /// replaced no longer needs ([`Self::carry_over`] reads only its graph and trainable
-    /// tensors), so that they are not held beside its replacement's.
-    pub fn release_frames(&mut self) {
-        self.p0 = Vec::new();
-        self.u = Vec::new();
+    /// Hand over the `[T, N]` p° and u (for the objective that replaces this one after a
+    /// density pass) and drop the step buffers ([`Self::carry_over`] reads only the graph
+    /// and trainable tensors), so that neither is held twice.
+    pub fn take_anchors(&mut self) -> (Vec<[f32; 3]>, Vec<f32>) {
         self.scratch = Default::default();
+        (std::mem::take(&mut self.p0), std::mem::take(&mut self.u))
     }
 
     /// Take over the trained tensors of `old` (the objective before a density pass): the
@@ -990,9 +1013,9 @@ impl GraphObjective {
     }
 }
 
-/// ‖p_b − p_a‖ of Gaussians `a` and `b` of `poses` at frame `f` (a canonical rest length).
-fn distance(poses: &Poses, f: usize, a: u32, b: u32) -> f64 {
-    let (pa, pb) = (poses.p(f, a as usize), poses.p(f, b as usize));
+/// ‖p_b − p_a‖ of Gaussians `a` and `b` in one frame's positions (a canonical rest length).
+fn distance(frame: &[[f32; 3]], a: u32, b: u32) -> f64 {
+    let (pa, pb) = (frame[a as usize], frame[b as usize]);
     let d = [0, 1, 2].map(|c| (pb[c] - pa[c]) as f64);
     (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
 }
@@ -1042,15 +1065,15 @@ mod tests {
             .map(|f| DMat3::from_euler(glam::EulerRot::XYZ, 0.1 * f as f64, -0.7, 0.3))
             .collect();
         let ids: Vec<u32> = (100..100 + n as u32).collect();
+        let t_hat = t_hat.map(|t| t as u32);
         let inp = GraphInputs {
-            initial: p0.clone(),
+            anchors: Anchors::of_poses(&p0, u, &nonkeys, &t_hat),
             ids: &ids,
             keys: &keys,
             nonkeys: &nonkeys,
-            t_hat: &t_hat.map(|t| t as u32),
+            t_hat: &t_hat,
             nonkey_edges: &nonkey_edges,
             key_edges: &key_edges,
-            u,
             rot_cw: &rot,
             nonkey_lambda: 1.0,
         };
@@ -1261,14 +1284,13 @@ mod tests {
                 .map(|(a, b)| (keys[a], keys[b], 1.0))
                 .collect();
             let inp = GraphInputs {
-                initial: p0.clone(),
+                anchors: Anchors::of_poses(&p0, u.clone(), &nonkeys, &t_hat),
                 ids: &ids,
                 keys: &keys,
                 nonkeys: &nonkeys,
                 t_hat: &t_hat,
                 nonkey_edges: &nonkey_edges,
                 key_edges: &key_edges,
-                u: u.clone(),
                 rot_cw: &rot,
                 nonkey_lambda: 100.0,
             };

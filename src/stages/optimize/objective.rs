@@ -19,31 +19,42 @@ use std::collections::HashMap;
 
 use glam::DMat3;
 
-use super::graph_loss::{GraphObjective, GraphSettings, GraphTables};
+use super::graph_loss::{Anchors, GraphObjective, GraphSettings, GraphTables};
 use super::motion::{self, EdgeSet, MotionForm};
 use super::poses::{PoseGrads, Poses};
 use super::smoothness;
-use super::state::TrainState;
+use super::state::{TrainState, gather_frames};
 use crate::tables::edges::{EdgeKind, Edges};
 use crate::tables::key_nodes::{KeyNodes, Role};
 
-/// What the graph objective is built from (fixed for a run).
+/// What the graph objective is built from (fixed for a run; its `[T, N]` p° and u come
+/// and go with the objective, [`OriginAnchors`]).
 pub struct GraphSource {
     /// The input key-node table.
     pub keys: KeyNodes,
     /// The input edges table.
     pub edges: Edges,
-    /// Input poses p° by `gaussian_id`: row of each id in `initial`.
-    pub row: HashMap<u32, usize>,
-    /// The input model's poses `[T, N_in]`.
-    pub initial: Poses,
-    /// u `[T, N_in]` in `initial`'s order (φ = 1e8 where the table has no value).
-    pub u: Vec<f32>,
+    /// q° at t̂ (the key-node table's) of each input Gaussian of that table, by
+    /// `gaussian_id`: the DQB source rotation of the non-keys that descend from it.
+    pub q_hat: HashMap<u32, [f32; 4]>,
     /// R_cw of each frame's training camera `[T]`.
     pub rot_cw: Vec<DMat3>,
     /// λ / unit² of the input edges table's non-key weights (from its graph metadata;
     /// `None` when it has none).
     pub nonkey_lambda: Option<f64>,
+}
+
+/// p° and u `[T, rows]` of Gaussians by the input Gaussian each descends from: read from
+/// the input model and uncertainty table when a run starts, handed over by the objective
+/// ([`GraphObjective::take_anchors`]) at a density pass. Every Gaussian of one origin has
+/// the same rows.
+pub struct OriginAnchors {
+    /// The origin of each row.
+    pub origin: Vec<u32>,
+    /// p° `[T, rows]`.
+    pub p0: Vec<[f32; 3]>,
+    /// u `[T, rows]` (φ = 1e8 where the table has no value).
+    pub u: Vec<f32>,
 }
 
 /// The vanilla recipe's kNN motion graph over the dynamic Gaussians.
@@ -198,29 +209,37 @@ fn z_order(points: &[[f32; 3]]) -> Vec<usize> {
 }
 
 /// The usplat4d objective for the current Gaussians of `state`, the graph given by `edges`
-/// (the input table at the start, the learned one at a density pass).
+/// (the input table at the start, the learned one at a density pass), with p° and u from
+/// `anchors` (rearranged in place into the state's order).
 pub fn build_graph(
     src: &GraphSource,
     state: &TrainState,
     edges: &Edges,
+    anchors: OriginAnchors,
     settings: &GraphSettings,
 ) -> anyhow::Result<GraphObjective> {
     let (keys, edges) = trained_graph(state, &src.keys, edges);
-    let (nt, n, n_in) = (state.frames(), state.n(), src.row.len());
-    let mut initial = Poses::with_capacity(nt, n);
-    let mut u = Vec::with_capacity(nt * n);
-    let rows: Vec<usize> = state.origin.iter().map(|o| src.row[o]).collect();
-    for t in 0..nt {
-        initial.position.extend(rows.iter().map(|&r| src.initial.position[t * n_in + r]));
-        initial.rotation.extend(rows.iter().map(|&r| src.initial.rotation[t * n_in + r]));
-        u.extend(rows.iter().map(|&r| src.u[t * n_in + r]));
+    let OriginAnchors { origin, mut p0, mut u } = anchors;
+    let mut row: HashMap<u32, usize> = HashMap::with_capacity(origin.len());
+    for (r, &o) in origin.iter().enumerate() {
+        row.entry(o).or_insert(r);
     }
+    let rows = (state.origin.iter())
+        .map(|o| row.get(o).copied())
+        .collect::<Option<Vec<usize>>>()
+        .ok_or_else(|| anyhow::anyhow!("graph objective: a Gaussian without p° and u"))?;
+    let nt = state.frames();
+    gather_frames(&mut p0, nt, origin.len(), 1, &rows, rows.len());
+    gather_frames(&mut u, nt, origin.len(), 1, &rows, rows.len());
+    let identity = [1.0, 0.0, 0.0, 0.0];
+    let q_hat = state.origin.iter().map(|o| src.q_hat.get(o).copied().unwrap_or(identity));
+    let anchors = Anchors { frames: nt, p0, u, q_hat: q_hat.collect() };
     let tables = GraphTables {
         key_nodes: &keys,
         edges: &edges,
         nonkey_lambda: src.nonkey_lambda.unwrap_or(f64::NAN),
     };
-    GraphObjective::from_tables(initial, &state.ids, tables, u, &src.rot_cw, settings.clone())
+    GraphObjective::from_tables(anchors, &state.ids, tables, &src.rot_cw, settings.clone())
         .map_err(|e| anyhow::anyhow!("graph objective: {e}"))
 }
 

@@ -16,9 +16,9 @@ use super::density::{self, DensityStats};
 use super::graph_loss::GraphObjective;
 use super::image_loss::ImageLossWeights;
 use super::nonkey_weights::{self, NonkeyWeights};
-use super::objective::{GraphSource, KnnMotion, build_graph, trained_graph};
+use super::objective::{GraphSource, KnnMotion, OriginAnchors, build_graph, trained_graph};
 use super::params::{OptimizeParams, OptimizeSettings, Recipe};
-use super::poses::{PoseGrads, Poses};
+use super::poses::PoseGrads;
 use super::state::{StateGrads, TrainState};
 use super::step::{TrainingViews, image_step};
 use super::timing::PhaseTimes;
@@ -95,20 +95,24 @@ enum Objective {
     Graph(Box<GraphObjective>),
 }
 
+/// The recipe's objective for `state`: the kNN graph, or the graph objective on `learned`
+/// edges (the input's by default) with p° and u from `anchors`.
 fn build_objective(
     s: &OptimizeSettings,
     source: Option<&GraphSource>,
     state: &TrainState,
     learned: Option<&Edges>,
+    anchors: Option<OriginAnchors>,
 ) -> anyhow::Result<Objective> {
-    Ok(match source {
-        None => Objective::Knn(KnnMotion::new(state, s.knn_k)),
-        Some(src) => Objective::Graph(Box::new(build_graph(
+    Ok(match (source, anchors) {
+        (Some(src), Some(anchors)) => Objective::Graph(Box::new(build_graph(
             src,
             state,
             learned.unwrap_or(&src.edges),
+            anchors,
             &s.graph,
         )?)),
+        _ => Objective::Knn(KnnMotion::new(state, s.knn_k)),
     })
 }
 
@@ -164,22 +168,28 @@ fn log_rates(adam: &Adam) -> Vec<(String, f32)> {
     out
 }
 
-/// p°, u and camera rotations the graph objective is built from.
+/// What the graph objective is built from, and the input model's p° and u for its first
+/// build.
 fn graph_source(
     p: &OptimizeParams,
     model: &Model,
     views: &TrainingViews,
     g: &GraphInputs,
-) -> anyhow::Result<GraphSource> {
+) -> anyhow::Result<(GraphSource, OriginAnchors)> {
     let (nt, n) = (model.num_frames(), model.gaussians.len());
-    let mut initial = Poses::with_capacity(nt, n);
+    let t_hat: HashMap<u32, usize> =
+        g.keys.id.iter().zip(&g.keys.t_hat).map(|(&i, &t)| (i, t as usize)).collect();
+    let mut p0 = Vec::with_capacity(nt * n);
+    let mut q_hat = HashMap::with_capacity(t_hat.len());
     for t in 0..nt {
         let f = model.frame(t)?;
-        initial.position.extend(f.position);
-        initial.rotation.extend(f.rotation);
+        p0.extend(f.position);
+        for (&id, &q) in model.gaussians.id.iter().zip(&f.rotation) {
+            if t_hat.get(&id) == Some(&t) {
+                q_hat.insert(id, q);
+            }
+        }
     }
-    let row: HashMap<u32, usize> =
-        model.gaussians.id.iter().enumerate().map(|(r, &i)| (i, r)).collect();
     let dir = p
         .uncertainty
         .as_ref()
@@ -206,15 +216,14 @@ fn graph_source(
             glam::DMat3::from_mat4(w2c)
         })
         .collect();
-    Ok(GraphSource {
+    let source = GraphSource {
         keys: g.keys.clone(),
         edges: g.edges.clone(),
-        row,
-        initial,
-        u,
+        q_hat,
         rot_cw,
         nonkey_lambda: g.nonkey_lambda,
-    })
+    };
+    Ok((source, OriginAnchors { origin: model.gaussians.id.clone(), p0, u }))
 }
 
 /// Input files whose bytes the checkpoint fingerprint covers.
@@ -338,11 +347,11 @@ pub fn run_timed(
             }
         }
     };
-    let source = match &graph {
-        Some(g) => Some(graph_source(p, &model, &views, g)?),
-        None => None,
+    let (source, anchors) = match &graph {
+        Some(g) => graph_source(p, &model, &views, g).map(|(s, a)| (Some(s), Some(a)))?,
+        None => (None, None),
     };
-    let mut objective = build_objective(&s, source.as_ref(), &c.state, None)?;
+    let mut objective = build_objective(&s, source.as_ref(), &c.state, None, anchors)?;
     match &mut objective {
         Objective::Graph(o) if c.step == 0 => add_graph_groups(&mut c.adam, o, &s),
         Objective::Graph(o) => restore_graph(o, &c.graph)?,
@@ -447,6 +456,8 @@ pub fn run_timed(
         if s.density.active(step, s.steps) {
             let protected: Vec<bool> =
                 c.state.ids.iter().map(|i| role.get(i) == Some(&Role::Key)).collect();
+            // The objective's p° and u rows are in this order until it is rebuilt.
+            let origin = c.state.origin.clone();
             let r = density::densify_and_prune(
                 &mut c.state,
                 &mut c.adam,
@@ -460,15 +471,15 @@ pub fn run_timed(
             );
             tracing::info!(step, ?r, n = c.state.n(), "density control");
             c.density = DensityStats::new(c.state.n());
-            let learned = match &mut objective {
+            let (learned, anchors) = match &mut objective {
                 Objective::Graph(o) => {
-                    let learned = o.learned_edges();
-                    o.release_frames();
-                    Some(learned)
+                    let (p0, u) = o.take_anchors();
+                    (Some(o.learned_edges()), Some(OriginAnchors { origin, p0, u }))
                 }
-                Objective::Knn(_) => None,
+                Objective::Knn(_) => (None, None),
             };
-            let mut rebuilt = build_objective(&s, source.as_ref(), &c.state, learned.as_ref())?;
+            let mut rebuilt =
+                build_objective(&s, source.as_ref(), &c.state, learned.as_ref(), anchors)?;
             if let (Objective::Graph(new), Objective::Graph(old)) = (&mut rebuilt, &objective) {
                 let origin: HashMap<u32, u32> =
                     c.state.ids.iter().copied().zip(c.state.origin.iter().copied()).collect();

@@ -279,7 +279,7 @@ impl GraphObjective {
 mod tests {
     use glam::DMat3;
 
-    use super::super::{GraphInputs, GraphSettings};
+    use super::super::{Anchors, GraphInputs, GraphSettings};
     use super::*;
     use crate::stages::params::Profile;
 
@@ -318,15 +318,15 @@ mod tests {
         let u = vec![0.1f32; t * n];
         let rot = vec![DMat3::IDENTITY; t];
         let ids: Vec<u32> = (0..n as u32).collect();
+        let (nonkeys, t_hat) = ([3, 4, 5, 6], [0, 2, 8, 4]);
         let inp = GraphInputs {
-            initial: prior.clone(),
+            anchors: Anchors::of_poses(&prior, u, &nonkeys, &t_hat),
             ids: &ids,
             keys: &keys,
-            nonkeys: &[3, 4, 5, 6],
-            t_hat: &[0, 2, 8, 4],
+            nonkeys: &nonkeys,
+            t_hat: &t_hat,
             nonkey_edges: &nonkey_edges,
             key_edges: &key_edges,
-            u,
             rot_cw: &rot,
             nonkey_lambda: 1.0,
         };
