@@ -211,7 +211,7 @@ fn z_order(points: &[[f32; 3]]) -> Vec<usize> {
 /// The usplat4d objective for the current Gaussians of `state`, the graph given by `edges`
 /// (the input table at the start, the learned one at a density pass), with p° and u from
 /// `anchors`, gathered into the state's order. The gathered copies are new buffers rather
-/// than `anchors`' rearranged in place: steps ran 4 to 6% slower on the rearranged ones
+/// than `anchors`' rearranged in place: steps ran about 6% slower on the rearranged ones
 /// (`bench optimize` at N = 46,444 on 2 threads), and the copy's transient is only p° and
 /// u, 16 bytes per Gaussian and frame.
 pub fn build_graph(
