@@ -598,8 +598,9 @@ impl GraphObjective {
     }
 
     /// Hand over the `[T, N]` p° and u (for the objective that replaces this one after a
-    /// density pass) and drop the step buffers ([`Self::carry_over`] reads only the graph
-    /// and trainable tensors), so that neither is held twice.
+    /// density pass, which gathers its rows from them) and drop the step buffers
+    /// ([`Self::carry_over`] reads only the graph and trainable tensors), so that the old
+    /// objective holds no `[T, N]` array beside its replacement's.
     pub fn take_anchors(&mut self) -> (Vec<[f32; 3]>, Vec<f32>) {
         self.scratch = Default::default();
         (std::mem::take(&mut self.p0), std::mem::take(&mut self.u))

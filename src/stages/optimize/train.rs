@@ -95,24 +95,23 @@ enum Objective {
     Graph(Box<GraphObjective>),
 }
 
-/// The recipe's objective for `state`: the kNN graph, or the graph objective on `learned`
-/// edges (the input's by default) with p° and u from `anchors`.
+/// The recipe's objective for `state`: the graph objective from `graph`'s source and
+/// anchors on `learned` edges (the input's by default), or without a graph the kNN graph.
 fn build_objective(
     s: &OptimizeSettings,
-    source: Option<&GraphSource>,
+    graph: Option<(&GraphSource, OriginAnchors)>,
     state: &TrainState,
     learned: Option<&Edges>,
-    anchors: Option<OriginAnchors>,
 ) -> anyhow::Result<Objective> {
-    Ok(match (source, anchors) {
-        (Some(src), Some(anchors)) => Objective::Graph(Box::new(build_graph(
+    Ok(match graph {
+        None => Objective::Knn(KnnMotion::new(state, s.knn_k)),
+        Some((src, anchors)) => Objective::Graph(Box::new(build_graph(
             src,
             state,
             learned.unwrap_or(&src.edges),
             anchors,
             &s.graph,
         )?)),
-        _ => Objective::Knn(KnnMotion::new(state, s.knn_k)),
     })
 }
 
@@ -179,16 +178,19 @@ fn graph_source(
     let (nt, n) = (model.num_frames(), model.gaussians.len());
     let t_hat: HashMap<u32, usize> =
         g.keys.id.iter().zip(&g.keys.t_hat).map(|(&i, &t)| (i, t as usize)).collect();
+    // the model rows whose rotation each frame gives (those with t̂ there)
+    let mut at_frame: Vec<Vec<usize>> = vec![Vec::new(); nt];
+    for (r, id) in model.gaussians.id.iter().enumerate() {
+        if let Some(&t) = t_hat.get(id).filter(|&&t| t < nt) {
+            at_frame[t].push(r);
+        }
+    }
     let mut p0 = Vec::with_capacity(nt * n);
     let mut q_hat = HashMap::with_capacity(t_hat.len());
-    for t in 0..nt {
+    for (t, rows) in at_frame.iter().enumerate() {
         let f = model.frame(t)?;
         p0.extend(f.position);
-        for (&id, &q) in model.gaussians.id.iter().zip(&f.rotation) {
-            if t_hat.get(&id) == Some(&t) {
-                q_hat.insert(id, q);
-            }
-        }
+        q_hat.extend(rows.iter().map(|&r| (model.gaussians.id[r], f.rotation[r])));
     }
     let dir = p
         .uncertainty
@@ -351,7 +353,7 @@ pub fn run_timed(
         Some(g) => graph_source(p, &model, &views, g).map(|(s, a)| (Some(s), Some(a)))?,
         None => (None, None),
     };
-    let mut objective = build_objective(&s, source.as_ref(), &c.state, None, anchors)?;
+    let mut objective = build_objective(&s, source.as_ref().zip(anchors), &c.state, None)?;
     match &mut objective {
         Objective::Graph(o) if c.step == 0 => add_graph_groups(&mut c.adam, o, &s),
         Objective::Graph(o) => restore_graph(o, &c.graph)?,
@@ -471,15 +473,14 @@ pub fn run_timed(
             );
             tracing::info!(step, ?r, n = c.state.n(), "density control");
             c.density = DensityStats::new(c.state.n());
-            let (learned, anchors) = match &mut objective {
-                Objective::Graph(o) => {
+            let (learned, graph) = match (&mut objective, &source) {
+                (Objective::Graph(o), Some(src)) => {
                     let (p0, u) = o.take_anchors();
-                    (Some(o.learned_edges()), Some(OriginAnchors { origin, p0, u }))
+                    (Some(o.learned_edges()), Some((src, OriginAnchors { origin, p0, u })))
                 }
-                Objective::Knn(_) => (None, None),
+                _ => (None, None),
             };
-            let mut rebuilt =
-                build_objective(&s, source.as_ref(), &c.state, learned.as_ref(), anchors)?;
+            let mut rebuilt = build_objective(&s, graph, &c.state, learned.as_ref())?;
             if let (Objective::Graph(new), Objective::Graph(old)) = (&mut rebuilt, &objective) {
                 let origin: HashMap<u32, u32> =
                     c.state.ids.iter().copied().zip(c.state.origin.iter().copied()).collect();
