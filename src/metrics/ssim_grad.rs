@@ -137,28 +137,30 @@ fn channel(
 ) -> (f64, Option<Vec<f64>>) {
     const S: usize = 5;
     let mut hor = vec![0.0; S * w * h];
-    hor.par_chunks_mut(S * w).enumerate().for_each(|(yy, out)| {
-        let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
-        let mut prod = vec![0.0; w];
-        let mut signal = |k: usize, src: &[f64]| blur_row(src, &mut out[k * w..(k + 1) * w], f);
-        signal(0, xr);
-        signal(1, yr);
-        for (i, p) in [(2, (xr, xr)), (3, (yr, yr)), (4, (xr, yr))] {
-            for ((o, a), b) in prod.iter_mut().zip(p.0).zip(p.1) {
-                *o = a * b;
+    hor.par_chunks_mut(S * w).enumerate().for_each_init(
+        || vec![0.0; w + 2 * HALF],
+        |padded, (yy, out)| {
+            let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
+            let signals: [(&[f64], Option<&[f64]>); S] =
+                [(xr, None), (yr, None), (xr, Some(xr)), (yr, Some(yr)), (xr, Some(yr))];
+            for (o, (a, b)) in out.chunks_exact_mut(w).zip(signals) {
+                let inner = &mut padded[HALF..HALF + w];
+                match b {
+                    None => inner.copy_from_slice(a),
+                    Some(b) => inner.iter_mut().zip(a).zip(b).for_each(|((p, a), b)| *p = a * b),
+                }
+                blur_row(padded, o, f);
             }
-            signal(i, &prod);
-        }
-    });
+        },
+    );
     let cols = map_cols(w, padding);
     // Per map row: the map's sum, and A, B, C into `coef` rows `[3, W]`.
     let mut coef = if want_grad { vec![0.0; 3 * w * h] } else { Vec::new() };
-    let per_row = |(yy, out): (usize, &mut [f64])| -> f64 {
+    let per_row = |v: &mut Vec<f64>, (yy, out): (usize, &mut [f64])| -> f64 {
         if !is_map_row(yy, h, padding) {
             return 0.0;
         }
-        let mut v = vec![0.0; S * w];
-        blur_column(&hor, S * w, h, yy, f, &mut v);
+        blur_column(&hor, S * w, h, yy, f, v);
         let mut sum = 0.0;
         for xx in cols.clone() {
             let (s, abc) = ssim_terms(std::array::from_fn(|k| v[k * w + xx]));
@@ -171,30 +173,37 @@ fn channel(
         }
         sum
     };
+    let scratch = || vec![0.0; S * w];
     let row_sums: Vec<f64> = if want_grad {
-        coef.par_chunks_mut(3 * w).enumerate().map(per_row).collect()
+        coef.par_chunks_mut(3 * w).enumerate().map_init(scratch, per_row).collect()
     } else {
-        (0..h).into_par_iter().map(|yy| per_row((yy, &mut []))).collect()
+        (0..h).into_par_iter().map_init(scratch, |v, yy| per_row(v, (yy, &mut []))).collect()
     };
     let total = row_sums.iter().sum();
     if !want_grad {
         return (total, None);
     }
     let mut hor3 = vec![0.0; 3 * w * h];
-    hor3.par_chunks_mut(3 * w).zip(coef.par_chunks(3 * w)).for_each(|(o, c)| {
-        for k in 0..3 {
-            blur_row(&c[k * w..(k + 1) * w], &mut o[k * w..(k + 1) * w], f);
-        }
-    });
+    hor3.par_chunks_mut(3 * w).zip(coef.par_chunks(3 * w)).for_each_init(
+        || vec![0.0; w + 2 * HALF],
+        |padded, (o, c)| {
+            for (o, c) in o.chunks_exact_mut(w).zip(c.chunks_exact(w)) {
+                padded[HALF..HALF + w].copy_from_slice(c);
+                blur_row(padded, o, f);
+            }
+        },
+    );
     let mut grad = vec![0.0; w * h];
-    grad.par_chunks_mut(w).enumerate().for_each(|(yy, g)| {
-        let mut v = vec![0.0; 3 * w];
-        blur_column(&hor3, 3 * w, h, yy, f, &mut v);
-        let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
-        for i in 0..w {
-            g[i] = v[i] + 2.0 * xr[i] * v[w + i] + yr[i] * v[2 * w + i];
-        }
-    });
+    grad.par_chunks_mut(w).enumerate().for_each_init(
+        || vec![0.0; 3 * w],
+        |v, (yy, g)| {
+            blur_column(&hor3, 3 * w, h, yy, f, v);
+            let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
+            for i in 0..w {
+                g[i] = v[i] + 2.0 * xr[i] * v[w + i] + yr[i] * v[2 * w + i];
+            }
+        },
+    );
     (total, Some(grad))
 }
 
@@ -218,35 +227,50 @@ fn ssim_terms(s: [f64; 5]) -> (f64, [f64; 3]) {
     (v, [ds_dmx - 2.0 * mx * b - my * c, b, c])
 }
 
-/// Horizontal pass of one row with zeros outside: `o[x] += Σ_k f[k]·s[x + k − 5]`, taps
-/// added in order k = 0..10 (`o` starts at 0).
-fn blur_row(s: &[f64], o: &mut [f64], f: &[f64; WINDOW]) {
-    let w = s.len();
-    for (k, fk) in f.iter().enumerate() {
-        // Outputs x with 0 ≤ x + k − 5 < w.
-        let lo = HALF.saturating_sub(k);
-        let hi = (w + HALF).saturating_sub(k).min(w);
-        if lo < hi {
-            let off = lo + k - HALF;
-            for (a, v) in o[lo..hi].iter_mut().zip(&s[off..off + hi - lo]) {
-                *a += fk * v;
-            }
-        }
-    }
+/// Horizontal pass of one row held in `padded` between 5 zeros on either side:
+/// `o[x] = Σ_k f[k]·s[x + k − 5]` with zeros outside, taps added in order k = 0..10 to 0.
+fn blur_row(padded: &[f64], o: &mut [f64], f: &[f64; WINDOW]) {
+    let w = o.len();
+    let taps: [(f64, &[f64]); WINDOW] = std::array::from_fn(|k| (f[k], &padded[k..k + w]));
+    weighted_sum(&taps, o);
 }
 
 /// Vertical pass at row `yy` of planes stored as rows of `len` values (`[H, len]`) with
-/// zeros outside: `out += Σ_k f[k]·rows[yy + k − 5]`, taps in order k = 0..10.
+/// zeros outside: `out = Σ_k f[k]·rows[yy + k − 5]`, taps added in order k = 0..10 to 0.
 fn blur_column(rows: &[f64], len: usize, h: usize, yy: usize, f: &[f64; WINDOW], out: &mut [f64]) {
+    let mut taps = [(0.0, &rows[..0]); WINDOW];
+    let mut n = 0;
     for (k, fk) in f.iter().enumerate() {
         let r = yy + k;
-        if r < HALF || r - HALF >= h {
-            continue;
+        if r >= HALF && r - HALF < h {
+            taps[n] = (*fk, &rows[(r - HALF) * len..(r - HALF + 1) * len]);
+            n += 1;
         }
-        let row = &rows[(r - HALF) * len..(r - HALF + 1) * len];
-        for (a, v) in out.iter_mut().zip(row) {
-            *a += fk * v;
+    }
+    weighted_sum(&taps[..n], out);
+}
+
+/// `out[x] = Σ_k c_k·s_k[x]` over the taps `(c_k, s_k)`, added in tap order to 0, eight
+/// outputs at a time in registers. A tap whose value is a zero of padding leaves the sum's
+/// bits unchanged (the sum starts at +0, so it is never −0), so the blurs equal the same
+/// folds with the taps outside the image left out.
+fn weighted_sum(taps: &[(f64, &[f64])], out: &mut [f64]) {
+    const L: usize = 8;
+    let n = out.len();
+    let mut chunks = out.chunks_exact_mut(L);
+    for (c, o) in chunks.by_ref().enumerate() {
+        let mut acc = [0.0f64; L];
+        for (fk, s) in taps {
+            let s = &s[c * L..(c + 1) * L];
+            for l in 0..L {
+                acc[l] += fk * s[l];
+            }
         }
+        o.copy_from_slice(&acc);
+    }
+    let done = n - chunks.into_remainder().len();
+    for x in done..n {
+        out[x] = taps.iter().fold(0.0, |a, (fk, s)| a + fk * s[x]);
     }
 }
 
@@ -375,6 +399,45 @@ mod tests {
             }
         }
         assert!(failures.is_empty(), "{}", failures.join("\n"));
+    }
+
+    /// The blurs give the bits of the plain folds that leave the taps outside the image out
+    /// (signed values, zeros of both signs, widths below and above the register group).
+    #[test]
+    fn blurs_equal_the_folds_without_the_outside_taps() {
+        let f = window();
+        for (w, h, seed) in [(3, 2, 1), (8, 5, 2), (21, 13, 3), (37, 4, 4)] {
+            let mut s: Vec<f64> = noise(w * h, seed).iter().map(|v| *v as f64 - 0.5).collect();
+            s[0] = -0.0;
+            s[w * h - 1] = 0.0;
+            for yy in 0..h {
+                let row = &s[yy * w..(yy + 1) * w];
+                let mut padded = vec![0.0; w + 2 * HALF];
+                padded[HALF..HALF + w].copy_from_slice(row);
+                let mut got = vec![f64::NAN; w];
+                blur_row(&padded, &mut got, &f);
+                let want: Vec<f64> = (0..w)
+                    .map(|x| {
+                        let taps = (0..WINDOW).filter(|k| (HALF..w + HALF).contains(&(x + k)));
+                        taps.fold(0.0, |a, k| a + f[k] * row[x + k - HALF])
+                    })
+                    .collect();
+                assert_eq!(bits(&got), bits(&want), "row {yy} of {w}x{h}");
+                let mut got = vec![f64::NAN; w];
+                blur_column(&s, w, h, yy, &f, &mut got);
+                let want: Vec<f64> = (0..w)
+                    .map(|x| {
+                        let taps = (0..WINDOW).filter(|k| (HALF..h + HALF).contains(&(yy + k)));
+                        taps.fold(0.0, |a, k| a + f[k] * s[(yy + k - HALF) * w + x])
+                    })
+                    .collect();
+                assert_eq!(bits(&got), bits(&want), "column pass at row {yy} of {w}x{h}");
+            }
+        }
+    }
+
+    fn bits(v: &[f64]) -> Vec<u64> {
+        v.iter().map(|x| x.to_bits()).collect()
     }
 
     #[test]
