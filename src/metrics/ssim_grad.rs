@@ -68,31 +68,33 @@ pub fn ssim_with_grad(
     })?;
     let f = window();
     let want = grad.is_some();
-    let mut total = 0.0;
-    let mut grads = Vec::with_capacity(if want { channels } else { 0 });
-    for c in 0..channels {
-        let plane = |img: &[f32]| -> Vec<f64> {
-            img.par_chunks(w * channels)
-                .flat_map_iter(|row| row.chunks_exact(channels).map(move |p| p[c] as f64))
-                .collect()
-        };
-        let (sum, g) = channel(&plane(x), &plane(y), w, h, padding, &f, want);
-        total += sum;
-        grads.extend(g);
-    }
     let norm = 1.0 / (map * channels) as f64;
-    if let Some((out, scale)) = grad {
-        assert_eq!(out.len(), n, "gradient buffer is [H, W, C]");
-        let k = scale * norm;
-        out.par_chunks_mut(w * channels).enumerate().for_each(|(row, o)| {
-            for (c, g) in grads.iter().enumerate() {
-                let g = &g[row * w..(row + 1) * w];
+    let mut planes = PLANES.take();
+    let mut total = 0.0;
+    let mut out = grad;
+    for c in 0..channels {
+        let fill = |plane: &mut Vec<f64>, img: &[f32]| {
+            plane.resize(w * h, 0.0);
+            plane.par_chunks_mut(w).zip(img.par_chunks(w * channels)).for_each(|(o, row)| {
+                for (o, p) in o.iter_mut().zip(row.chunks_exact(channels)) {
+                    *o = p[c] as f64;
+                }
+            });
+        };
+        fill(&mut planes.x, x);
+        fill(&mut planes.y, y);
+        total += channel(&mut planes, w, h, padding, &f, want);
+        if let Some((out, scale)) = out.as_mut() {
+            assert_eq!(out.len(), n, "gradient buffer is [H, W, C]");
+            let k = *scale * norm;
+            out.par_chunks_mut(w * channels).zip(planes.grad.par_chunks(w)).for_each(|(o, g)| {
                 for (px, v) in o.chunks_exact_mut(channels).zip(g) {
                     px[c] += (k * v) as f32;
                 }
-            }
-        });
+            });
+        }
     }
+    PLANES.set(planes);
     Ok(total * norm)
 }
 
@@ -119,24 +121,49 @@ fn is_map_row(y: usize, h: usize, padding: SsimPadding) -> bool {
     padding == SsimPadding::Same || (HALF..h - HALF).contains(&y)
 }
 
-/// One channel, planes `[H, W]`: the sum of its SSIM map and, when `want_grad`, the
-/// gradient of that sum w.r.t. `x` (`[H, W]`).
+/// The `[H, W]` planes of [`channel`], kept per thread between calls of
+/// [`ssim_with_grad`]: a training step takes the SSIM of several frames of one size, and
+/// allocating these planes (about 14 per channel) afresh each time made glibc map and unmap
+/// whole heaps, page faults that cost more system time than the blurs. A call that finds
+/// them taken (rayon may start another on the same thread while one waits) allocates its
+/// own.
+#[derive(Debug, Default)]
+struct Planes {
+    /// The channel of the rendered image and of the reference.
+    x: Vec<f64>,
+    y: Vec<f64>,
+    /// The horizontal pass of the five signals, `[H, 5, W]`.
+    hor: Vec<f64>,
+    /// A, B and C, `[H, 3, W]`, and their horizontal pass.
+    coef: Vec<f64>,
+    hor3: Vec<f64>,
+    /// The gradient of the map's sum w.r.t. `x`.
+    grad: Vec<f64>,
+}
+
+thread_local! {
+    static PLANES: std::cell::Cell<Planes> = std::cell::Cell::new(Planes::default());
+}
+
+/// One channel, planes `p.x` and `p.y` (`[H, W]`): the sum of its SSIM map and, when
+/// `want_grad`, the gradient of that sum w.r.t. `x` in `p.grad` (`[H, W]`).
 ///
 /// Forward: a horizontal pass of the five signals into row-interleaved planes `[H, 5, W]`,
 /// then per map row one vertical pass over the whole `[5, W]` block, the map values and
 /// the coefficients A, B, C (`[H, 3, W]`, 0 off the map). Backward: the same two passes
 /// over `[H, 3, W]`, the vertical one fused with `A + 2x·B + y·C`.
 fn channel(
-    x: &[f64],
-    y: &[f64],
+    p: &mut Planes,
     w: usize,
     h: usize,
     padding: SsimPadding,
     f: &[f64; WINDOW],
     want_grad: bool,
-) -> (f64, Option<Vec<f64>>) {
+) -> f64 {
     const S: usize = 5;
-    let mut hor = vec![0.0; S * w * h];
+    let Planes { x, y, hor, coef, hor3, grad } = p;
+    let (x, y) = (&x[..], &y[..]);
+    hor.resize(S * w * h, 0.0);
     hor.par_chunks_mut(S * w).enumerate().for_each_init(
         || vec![0.0; w + 2 * HALF],
         |padded, (yy, out)| {
@@ -153,14 +180,16 @@ fn channel(
             }
         },
     );
+    let hor = &hor[..];
     let cols = map_cols(w, padding);
-    // Per map row: the map's sum, and A, B, C into `coef` rows `[3, W]`.
-    let mut coef = if want_grad { vec![0.0; 3 * w * h] } else { Vec::new() };
+    // Per row: the map's sum, and A, B, C into `coef` rows `[3, W]` (0 off the map).
+    coef.resize(if want_grad { 3 * w * h } else { 0 }, 0.0);
     let per_row = |v: &mut Vec<f64>, (yy, out): (usize, &mut [f64])| -> f64 {
+        out.fill(0.0);
         if !is_map_row(yy, h, padding) {
             return 0.0;
         }
-        blur_column(&hor, S * w, h, yy, f, v);
+        blur_column(hor, S * w, h, yy, f, v);
         let mut sum = 0.0;
         for xx in cols.clone() {
             let (s, abc) = ssim_terms(std::array::from_fn(|k| v[k * w + xx]));
@@ -181,9 +210,9 @@ fn channel(
     };
     let total = row_sums.iter().sum();
     if !want_grad {
-        return (total, None);
+        return total;
     }
-    let mut hor3 = vec![0.0; 3 * w * h];
+    hor3.resize(3 * w * h, 0.0);
     hor3.par_chunks_mut(3 * w).zip(coef.par_chunks(3 * w)).for_each_init(
         || vec![0.0; w + 2 * HALF],
         |padded, (o, c)| {
@@ -193,18 +222,19 @@ fn channel(
             }
         },
     );
-    let mut grad = vec![0.0; w * h];
+    let hor3 = &hor3[..];
+    grad.resize(w * h, 0.0);
     grad.par_chunks_mut(w).enumerate().for_each_init(
         || vec![0.0; 3 * w],
         |v, (yy, g)| {
-            blur_column(&hor3, 3 * w, h, yy, f, v);
+            blur_column(hor3, 3 * w, h, yy, f, v);
             let (xr, yr) = (&x[yy * w..(yy + 1) * w], &y[yy * w..(yy + 1) * w]);
             for i in 0..w {
                 g[i] = v[i] + 2.0 * xr[i] * v[w + i] + yr[i] * v[2 * w + i];
             }
         },
     );
-    (total, Some(grad))
+    total
 }
 
 /// The SSIM map value of one pixel from `[μx, μy, E(x²), E(y²), E(xy)]`, and its
@@ -352,8 +382,11 @@ mod tests {
                 .zip(&x)
                 .map(|(q, p)| 0.5 * p + 0.5 * *q as f64)
                 .collect();
-            let (_, g) = channel(&x, &y, w, h, padding, &f, true);
-            let g = g.unwrap();
+            let sum = |x: &[f64], want: bool| {
+                let mut p = Planes { x: x.to_vec(), y: y.clone(), ..Planes::default() };
+                (channel(&mut p, w, h, padding, &f, want), p.grad)
+            };
+            let g = sum(&x, true).1;
             let eps = 1e-5;
             // Every pixel: corners, borders and the interior.
             for i in 0..w * h {
@@ -361,9 +394,7 @@ mod tests {
                 xp[i] += eps;
                 let mut xm = x.clone();
                 xm[i] -= eps;
-                let fd = (channel(&xp, &y, w, h, padding, &f, false).0
-                    - channel(&xm, &y, w, h, padding, &f, false).0)
-                    / (2.0 * eps);
+                let fd = (sum(&xp, false).0 - sum(&xm, false).0) / (2.0 * eps);
                 let err = (fd - g[i]).abs();
                 max_err = max_err.max(err);
                 if err > 1e-7 + 1e-5 * fd.abs() {
@@ -465,6 +496,25 @@ mod tests {
             })
         };
         assert_eq!(run(1), run(4));
+    }
+
+    /// The planes kept between calls carry nothing over: after larger images on the same
+    /// thread, a call gives the bits of the same call on a fresh thread.
+    #[test]
+    fn kept_planes_carry_nothing_over() {
+        let run = |w: usize, h: usize, seed: u64, padding: SsimPadding| {
+            let (x, y) = (noise(w * h * 3, seed), noise(w * h * 3, seed + 1));
+            let mut g = vec![0.0f32; w * h * 3];
+            let s = ssim_with_grad(&x, &y, w, h, 3, padding, Some((&mut g, 1.0))).unwrap();
+            (s.to_bits(), g.iter().map(|v| v.to_bits()).collect::<Vec<_>>())
+        };
+        let fresh = std::thread::spawn(move || run(23, 17, 5, SsimPadding::Valid)).join().unwrap();
+        let reused = std::thread::spawn(move || {
+            run(40, 31, 1, SsimPadding::Same);
+            run(29, 19, 3, SsimPadding::Valid);
+            run(23, 17, 5, SsimPadding::Valid)
+        });
+        assert_eq!(reused.join().unwrap(), fresh);
     }
 
     #[test]
