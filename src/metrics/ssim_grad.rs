@@ -14,8 +14,8 @@
 //! `s = (2μxμy + c1)(2σxy + c2) / ((μx² + μy² + c1)(σxx + σyy + c2))` and S = mean_q s. Then
 //! `dS/dx_p = Σ_q g(p − q)·[A(q) + 2x_p·B(q) + y_p·C(q)] / |map|` with B = ∂s/∂σxx,
 //! C = ∂s/∂σxy, A = ∂s/∂μx − 2μx·B − μy·C (zero off the map): three more blurs with the same
-//! (symmetric) window. Each blur is separable, O(H·W·11); a channel costs 8 blurs and about
-//! 14 `[H, W]` f64 planes, nothing quadratic.
+//! (symmetric) window. Each blur is separable, O(H·W·11); a channel costs 8 blurs and 14
+//! `[H, W]` f64 planes, nothing quadratic, and the planes are kept per thread between calls.
 //!
 //! Threading: every pass runs rayon over rows; each value is computed by one task with its
 //! taps summed in a fixed order and row sums are added in row order, so the results are
