@@ -64,9 +64,12 @@ pub fn ssim(a: &Image, b: &Image, mask: Option<&[f32]>) -> Result<f64> {
 /// Outputs computed together by [`filter`] (in registers).
 const BLOCK: usize = 8;
 
-/// `out[x] = Σ_k f[k]·src[k][x]` for every `x` of `out`, summing the taps in order
-/// k = 0..10 from 0; blocks of [`BLOCK`] outputs are accumulated in registers.
-fn filter(f: &[f64; WINDOW], src: &[&[f64]; WINDOW], out: &mut [f64]) {
+/// `out[x] = Σ_k f[k]·src[k][x]` for every `x` of `out`, summing the taps in order from 0
+/// (one weight per source row, the window's 11 or, at a border, fewer); blocks of
+/// [`BLOCK`] outputs are accumulated in registers. Also the training SSIM's blur
+/// ([`super::ssim_grad`]).
+pub(super) fn filter(f: &[f64], src: &[&[f64]], out: &mut [f64]) {
+    debug_assert_eq!(f.len(), src.len(), "one weight per source row");
     let mut blocks = out.chunks_exact_mut(BLOCK);
     let mut x = 0;
     for o in &mut blocks {
@@ -184,7 +187,7 @@ impl Blur {
             // Horizontal pass into the ring slot of row y.
             let slot = &mut ring[(y % WINDOW) * SIGNALS * w1..(y % WINDOW + 1) * SIGNALS * w1];
             for (acc, row) in slot.chunks_exact_mut(w1).zip(input.chunks_exact(w)) {
-                filter(&self.f, &std::array::from_fn(|k| &row[k..k + w1]), acc);
+                filter(&self.f, &std::array::from_fn::<_, WINDOW, _>(|k| &row[k..k + w1]), acc);
                 if let Some(m) = &self.masks {
                     for (a, s) in acc.iter_mut().zip(&m.scale1[y * w1..(y + 1) * w1]) {
                         *a *= s;
@@ -197,7 +200,7 @@ impl Blur {
             // Vertical pass of output row oy = y − 10 over ring rows oy..=y.
             let oy = y + 1 - WINDOW;
             for (s, acc) in out.chunks_exact_mut(w1).enumerate() {
-                let src = std::array::from_fn(|k| {
+                let src: [&[f64]; WINDOW] = std::array::from_fn(|k| {
                     let r = (oy + k) % WINDOW;
                     &ring[(r * SIGNALS + s) * w1..(r * SIGNALS + s + 1) * w1]
                 });

@@ -23,7 +23,7 @@
 
 use rayon::prelude::*;
 
-use super::ssim::{K1, K2, WINDOW, window};
+use super::ssim::{K1, K2, WINDOW, filter, window};
 use super::{Error, Result};
 
 /// Half the window width (5): the zero padding of [`SsimPadding::Same`].
@@ -69,9 +69,12 @@ pub fn ssim_with_grad(
     let f = window();
     let want = grad.is_some();
     let norm = 1.0 / (map * channels) as f64;
+    let mut out = grad;
+    if let Some((g, _)) = &out {
+        assert_eq!(g.len(), n, "gradient buffer is [H, W, C]");
+    }
     let mut planes = PLANES.take();
     let mut total = 0.0;
-    let mut out = grad;
     for c in 0..channels {
         let fill = |plane: &mut Vec<f64>, img: &[f32]| {
             plane.resize(w * h, 0.0);
@@ -85,7 +88,6 @@ pub fn ssim_with_grad(
         fill(&mut planes.y, y);
         total += channel(&mut planes, w, h, padding, &f, want);
         if let Some((out, scale)) = out.as_mut() {
-            assert_eq!(out.len(), n, "gradient buffer is [H, W, C]");
             let k = *scale * norm;
             out.par_chunks_mut(w * channels).zip(planes.grad.par_chunks(w)).for_each(|(o, g)| {
                 for (px, v) in o.chunks_exact_mut(channels).zip(g) {
@@ -258,50 +260,25 @@ fn ssim_terms(s: [f64; 5]) -> (f64, [f64; 3]) {
 }
 
 /// Horizontal pass of one row held in `padded` between 5 zeros on either side:
-/// `o[x] = Σ_k f[k]·s[x + k − 5]` with zeros outside, taps added in order k = 0..10 to 0.
+/// `o[x] = Σ_k f[k]·s[x + k − 5]` with zeros outside, taps added in order k = 0..10 to 0. A
+/// tap on a padding zero leaves the sum's bits unchanged (the sum starts at +0, so it is
+/// never −0), so this equals the fold that leaves the taps outside the row out.
 fn blur_row(padded: &[f64], o: &mut [f64], f: &[f64; WINDOW]) {
     let w = o.len();
-    let taps: [(f64, &[f64]); WINDOW] = std::array::from_fn(|k| (f[k], &padded[k..k + w]));
-    weighted_sum(&taps, o);
+    filter(f, &std::array::from_fn::<_, WINDOW, _>(|k| &padded[k..k + w]), o);
 }
 
 /// Vertical pass at row `yy` of planes stored as rows of `len` values (`[H, len]`) with
-/// zeros outside: `out = Σ_k f[k]·rows[yy + k − 5]`, taps added in order k = 0..10 to 0.
+/// zeros outside: `out = Σ_k f[k]·rows[yy + k − 5]` over the taps k whose row is inside,
+/// added in order to 0.
 fn blur_column(rows: &[f64], len: usize, h: usize, yy: usize, f: &[f64; WINDOW], out: &mut [f64]) {
-    let mut taps = [(0.0, &rows[..0]); WINDOW];
-    let mut n = 0;
-    for (k, fk) in f.iter().enumerate() {
-        let r = yy + k;
-        if r >= HALF && r - HALF < h {
-            taps[n] = (*fk, &rows[(r - HALF) * len..(r - HALF + 1) * len]);
-            n += 1;
-        }
-    }
-    weighted_sum(&taps[..n], out);
-}
-
-/// `out[x] = Σ_k c_k·s_k[x]` over the taps `(c_k, s_k)`, added in tap order to 0, eight
-/// outputs at a time in registers. A tap whose value is a zero of padding leaves the sum's
-/// bits unchanged (the sum starts at +0, so it is never −0), so the blurs equal the same
-/// folds with the taps outside the image left out.
-fn weighted_sum(taps: &[(f64, &[f64])], out: &mut [f64]) {
-    const L: usize = 8;
-    let n = out.len();
-    let mut chunks = out.chunks_exact_mut(L);
-    for (c, o) in chunks.by_ref().enumerate() {
-        let mut acc = [0.0f64; L];
-        for (fk, s) in taps {
-            let s = &s[c * L..(c + 1) * L];
-            for l in 0..L {
-                acc[l] += fk * s[l];
-            }
-        }
-        o.copy_from_slice(&acc);
-    }
-    let done = n - chunks.into_remainder().len();
-    for x in done..n {
-        out[x] = taps.iter().fold(0.0, |a, (fk, s)| a + fk * s[x]);
-    }
+    // taps k with 0 ≤ yy + k − 5 < h
+    let (lo, hi) = (HALF.saturating_sub(yy), (h + HALF - yy).min(WINDOW));
+    let src: [&[f64]; WINDOW] = std::array::from_fn(|k| {
+        let r = yy + lo + k;
+        if lo + k < hi { &rows[(r - HALF) * len..(r - HALF + 1) * len] } else { &[] }
+    });
+    filter(&f[lo..hi], &src[..hi - lo], out);
 }
 
 #[cfg(test)]
