@@ -62,6 +62,14 @@ impl<const L: usize> Lanes<L> {
     pub fn sqrt(self) -> Self {
         self.map(f64::sqrt)
     }
+
+    /// Per lane `(x > 0) − (x < 0)` as f64: ±1, and +0 for ±0 and NaN, by masks (a compare
+    /// and a blend) rather than a conversion per lane.
+    #[inline]
+    pub fn sign(self) -> Self {
+        let (one, zero) = (Self::splat(1.0), Self::splat(0.0));
+        Self::select(self.gt0(), one, zero) - Self::select(self.lt0(), one, zero)
+    }
 }
 
 /// A per-lane condition of [`Lanes`]: every bit set where it holds (a vector compare's
@@ -132,6 +140,14 @@ mod tests {
         }
         for x in [Lanes([-1.0, 2.0]), Lanes([0.0, -0.0])] {
             assert_eq!(F2::select(x.lt0(), -x, x), x.abs());
+        }
+        let xs = [-2.5, 3.0, 0.0, -0.0, f64::NAN, f64::INFINITY, -f64::INFINITY, -5e-324, 5e-324];
+        for w in xs.windows(2) {
+            let s = Lanes([w[0], w[1]]).sign();
+            for l in 0..2 {
+                let want = crate::stages::optimize::sign(w[l]);
+                assert_eq!(s.0[l].to_bits(), want.to_bits(), "sign of {}", w[l]);
+            }
         }
         let m = Lanes([-1.0, 2.0]).gt0();
         assert!(!m.all() && Lanes([1.0, 2.0]).gt0().all());

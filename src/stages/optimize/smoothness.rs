@@ -21,7 +21,6 @@ use rayon::prelude::*;
 
 use super::motion::MotionForm;
 use super::poses::{PoseGrads, Poses};
-use super::sign;
 use crate::math::lanes::{Lanes, Mask};
 use crate::math::quat64::{self as q4, Q, V3};
 
@@ -324,10 +323,10 @@ fn deviation<const L: usize>(r: [Lanes<L>; 4]) -> ([Lanes<L>; 4], Lanes<L>) {
     )
 }
 
-/// [`sign`] per lane.
+/// [`super::sign`] per lane ([`Lanes::sign`], the same bits).
 #[inline]
 fn sign_l<const L: usize>(x: Lanes<L>) -> Lanes<L> {
-    x.map(sign)
+    x.sign()
 }
 
 #[inline]
