@@ -8,6 +8,14 @@
 
 use std::ops::{Add, Div, Mul, Neg, Sub};
 
+/// sign(x) with sign(0) = 0 (and 0 for NaN): the subgradient of |x| that the L1 terms use;
+/// [`Lanes::sign`] is its per-lane form.
+#[inline]
+pub fn sign(x: f64) -> f64 {
+    // branch-free: the signs of the L1 terms' residuals are unpredictable
+    (x > 0.0) as u8 as f64 - (x < 0.0) as u8 as f64
+}
+
 /// `L` f64 values, operated on lane by lane.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Lanes<const L: usize>(pub [f64; L]);
@@ -63,8 +71,8 @@ impl<const L: usize> Lanes<L> {
         self.map(f64::sqrt)
     }
 
-    /// Per lane `(x > 0) − (x < 0)` as f64: ±1, and +0 for ±0 and NaN, by masks (a compare
-    /// and a blend) rather than a conversion per lane.
+    /// [`sign`] per lane (±1, and +0 for ±0 and NaN), by masks (a compare and a blend)
+    /// rather than a conversion per lane.
     #[inline]
     pub fn sign(self) -> Self {
         let (one, zero) = (Self::splat(1.0), Self::splat(0.0));
@@ -145,7 +153,7 @@ mod tests {
         for w in xs.windows(2) {
             let s = Lanes([w[0], w[1]]).sign();
             for l in 0..2 {
-                let want = crate::stages::optimize::sign(w[l]);
+                let want = sign(w[l]);
                 assert_eq!(s.0[l].to_bits(), want.to_bits(), "sign of {}", w[l]);
             }
         }

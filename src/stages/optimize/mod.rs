@@ -23,9 +23,4 @@ pub mod train;
 pub use params::OptimizeParams;
 pub use train::run;
 
-/// sign(x) with sign(0) = 0: the subgradient of |x| that the L1 terms use.
-#[inline]
-pub fn sign(x: f64) -> f64 {
-    // branch-free: the signs of the L1 terms' residuals are unpredictable
-    (x > 0.0) as u8 as f64 - (x < 0.0) as u8 as f64
-}
+pub use crate::math::lanes::sign;

@@ -323,7 +323,7 @@ fn deviation<const L: usize>(r: [Lanes<L>; 4]) -> ([Lanes<L>; 4], Lanes<L>) {
     )
 }
 
-/// [`super::sign`] per lane ([`Lanes::sign`], the same bits).
+/// [`crate::math::lanes::sign`] per lane ([`Lanes::sign`], the same bits).
 #[inline]
 fn sign_l<const L: usize>(x: Lanes<L>) -> Lanes<L> {
     x.sign()
